@@ -1,0 +1,1 @@
+"""Zenoh configurations and the process graph of ``relaxmap run`` (data files)."""

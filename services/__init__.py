@@ -1,0 +1,1 @@
+"""relaxmap services: one package per service, a pure core and a thin bus node each."""

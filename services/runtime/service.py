@@ -1,0 +1,67 @@
+"""The process side of a service: flags, logging, signals, a session, then the node's ``run``."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from collections.abc import Callable
+
+import zenoh
+
+from services.runtime.config import add_bus_arguments, config_from_args
+
+log = logging.getLogger("relaxmap.runtime")
+
+
+def shutdown_event() -> threading.Event:
+    """An event set by SIGINT or SIGTERM, so that ``run`` loops end and sessions close cleanly."""
+    stop = threading.Event()
+
+    def handler(signum: int, _frame: object) -> None:
+        log.info("signal %s: stopping", signal.Signals(signum).name)
+        stop.set()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+    return stop
+
+
+def setup_logging(verbose: int = 0) -> None:
+    level = logging.INFO if verbose == 0 else logging.DEBUG
+    logging.basicConfig(level=level, stream=sys.stderr,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+
+
+def service_main(
+    name: str,
+    run: Callable[[zenoh.Session, argparse.Namespace, threading.Event], None],
+    *,
+    description: str,
+    add_arguments: Callable[[argparse.ArgumentParser], None] | None = None,
+    argv: list[str] | None = None,
+) -> int:
+    """Parse the shared and the service's flags, open a session and call ``run(session, args, stop)``.
+
+    Returns the process exit code: 0 after a clean stop, 2 for a bad configuration.
+    """
+    parser = argparse.ArgumentParser(prog=f"python -m services.{name}", description=description)
+    add_bus_arguments(parser)
+    parser.add_argument("-v", "--verbose", action="count", default=0)
+    if add_arguments is not None:
+        add_arguments(parser)
+    args = parser.parse_args(argv)
+    setup_logging(args.verbose)
+    stop = shutdown_event()
+    try:
+        conf = config_from_args(args)
+    except ValueError as e:
+        print(f"{name}: {e}", file=sys.stderr)
+        return 2
+    with zenoh.open(conf) as session:
+        log.info("%s up (zid %s)", name, session.zid())
+        run(session, args, stop)
+    log.info("%s stopped", name)
+    return 0

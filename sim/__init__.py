@@ -1,0 +1,1 @@
+"""The simulated world and robot: floor plans, kinematics, sensor models (pure, no bus)."""
