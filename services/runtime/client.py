@@ -36,10 +36,10 @@ def query(session: zenoh.Session, key: str, params: str | dict[str, Any] | None 
         On an error reply (with its text), an undecodable reply, or no reply within ``timeout_s``.
     """
     if isinstance(params, dict):
-        params = "&".join(f"{k}={v}" for k, v in params.items())
+        params = ";".join(f"{k}={v}" for k, v in params.items())
     sel = key if not params else f"{key}?{params}"
     if fmt != "msgpack":
-        sel += ("&" if "?" in sel else "?") + f"format={fmt}"
+        sel += (";" if "?" in sel else "?") + f"format={fmt}"
     for reply in session.get(sel, timeout=timeout_s):
         if reply.err is not None:
             raise QueryFailed(f"{key}: {_error_text(reply.err)}")

@@ -22,6 +22,7 @@ from services.runtime.params import QueryParams
 T = TypeVar("T")
 log = logging.getLogger("relaxmap.runtime")
 
+_MSGPACK = zenoh.Encoding("application/msgpack")
 QueryHandler = Callable[[str, QueryParams], Any]
 
 
@@ -32,7 +33,7 @@ class TypedPublisher(Generic[T]):
         self.key = key
         self.type = type_
         self._node = node
-        self._pub = node.session.declare_publisher(key, encoding=zenoh.Encoding.APPLICATION_MSGPACK)
+        self._pub = node.session.declare_publisher(key, encoding=_MSGPACK)
 
     def put(self, msg: T) -> None:
         if not isinstance(msg, self.type):
@@ -50,8 +51,9 @@ class Node:
     Subscribers decode in zenoh's threads (a message that fails to decode is counted and logged,
     never raised) and hand the decoded message to one event queue; queries go through the same queue.
     ``spin`` runs the callbacks one at a time in the caller's thread, so a service's state is only
-    ever touched by one thread. The health queryable and the liveliness token are declared at
-    construction.
+    ever touched by one thread. The health queryable is declared at construction; the liveliness
+    token when ``spin`` starts (or at ``announce``), once every subscriber and queryable is declared,
+    so that "alive" means "serving".
     """
 
     def __init__(self, session: zenoh.Session, service: str, *, robot: str = topics.DEFAULT_ROBOT,
@@ -68,7 +70,7 @@ class Node:
         self._events: queue.SimpleQueue[tuple[Callable[..., None], tuple]] = queue.SimpleQueue()
         self._entities: list[Any] = []
         self._entities.append(session.declare_queryable(topics.health(robot, service), self._on_health_query))
-        self._token = session.liveliness().declare_token(topics.alive(robot, service))
+        self._token: zenoh.LivelinessToken | None = None
 
     # -- counters ---------------------------------------------------------------------------------
     def _count(self, name: str, n: int = 1) -> None:
@@ -151,6 +153,11 @@ class Node:
         query.reply_err(msgspec.json.encode(ErrorReply(error=error, key=str(query.key_expr))))
 
     # -- the event loop ---------------------------------------------------------------------------
+    def announce(self) -> None:
+        """Declare the liveliness token ``relaxmap/<robot>/alive/<service>`` (once)."""
+        if self._token is None:
+            self._token = self.session.liveliness().declare_token(topics.alive(self.robot, self.service))
+
     def call_soon(self, fn: Callable[..., None], *args: Any) -> None:
         """Run ``fn(*args)`` from ``spin`` (thread-safe)."""
         self._events.put((fn, args))
@@ -171,6 +178,7 @@ class Node:
     def spin(self, stop: threading.Event, *, tick: Callable[[], None] | None = None,
              period_s: float = 0.1) -> None:
         """Run callbacks until ``stop`` is set; ``tick()`` runs at least every ``period_s``."""
+        self.announce()
         next_tick = time.monotonic() + period_s
         while not stop.is_set():
             self.spin_once(min(max(next_tick - time.monotonic(), 0.0), period_s))
@@ -190,10 +198,12 @@ class Node:
             except zenoh.ZError:
                 pass
         self._entities.clear()
-        try:
-            self._token.undeclare()
-        except zenoh.ZError:
-            pass
+        if self._token is not None:
+            try:
+                self._token.undeclare()
+            except zenoh.ZError:
+                pass
+            self._token = None
 
     def __enter__(self) -> Node:
         return self

@@ -12,22 +12,36 @@ from services.runtime.errors import QueryError
 MAX_PARAM_CHARS = 256  # longer values are refused, never parsed
 
 
+def parse_parameters(text: str) -> list[tuple[str, str]]:
+    """``k=v`` pairs separated by ``;`` (zenoh's own separator) or ``&`` (as in a URL).
+
+    zenoh.Parameters splits on ``;`` only; the query API of relaxmap documents ``from=1&to=2``, so
+    both are accepted here.
+    """
+    items = []
+    for part in text.replace("&", ";").split(";"):
+        if part:
+            name, _, value = part.partition("=")
+            items.append((name, value))
+    return items
+
+
 class QueryParams:
     """The parameters of one query, checked against the names a queryable accepts."""
 
     def __init__(self, params: zenoh.Parameters | str | dict[str, str], allowed: Iterable[str]) -> None:
-        if isinstance(params, zenoh.Parameters):
-            items = list(iter(params))
-        elif isinstance(params, str):
-            items = list(iter(zenoh.Parameters(params))) if params else []
+        if isinstance(params, dict):
+            items = [(str(k), str(v)) for k, v in params.items()]
         else:
-            items = list(params.items())
+            items = parse_parameters(str(params))
         allowed = frozenset(allowed)
         self._values: dict[str, str] = {}
         for name, value in items:
             if name not in allowed:
                 accepted = ", ".join(sorted(allowed)) or "none"
                 raise QueryError(f"unknown parameter {name[:40]!r} (accepted: {accepted})")
+            if name in self._values:
+                raise QueryError(f"parameter {name!r} given twice")
             if len(value) > MAX_PARAM_CHARS:
                 raise QueryError(f"parameter {name!r} is {len(value)} characters long (at most {MAX_PARAM_CHARS})")
             self._values[name] = value

@@ -1,0 +1,95 @@
+"""Shared fixtures: free loopback ports, a hub zenoh session, and processes cleaned up by pid."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+DATASETS = Path(os.environ.get("RELAXMAP_DATASETS", REPO.parent / "shared" / "datasets"))
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def hub() -> Iterator[tuple[object, str]]:
+    """A zenoh peer listening on a fresh loopback port: (session, endpoint for others to connect to)."""
+    import zenoh
+
+    from services.runtime import loopback_config
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    session = zenoh.open(loopback_config(listen=[endpoint]))
+    try:
+        yield session, endpoint
+    finally:
+        session.close()
+
+
+class Processes:
+    """Starts processes in their own process group and kills every one of them by pid at the end."""
+
+    def __init__(self) -> None:
+        self.procs: list[subprocess.Popen] = []
+
+    def start(self, args: list[str], **kwargs) -> subprocess.Popen:
+        kwargs.setdefault("stdout", subprocess.PIPE)
+        kwargs.setdefault("stderr", subprocess.STDOUT)
+        proc = subprocess.Popen(args, start_new_session=True, cwd=REPO, **kwargs)
+        self.procs.append(proc)
+        return proc
+
+    def python(self, module: str, *args: str, **kwargs) -> subprocess.Popen:
+        return self.start([sys.executable, "-m", module, *args], **kwargs)
+
+    def stop(self, proc: subprocess.Popen, sig: int = signal.SIGTERM, timeout_s: float = 10.0) -> int:
+        if proc.poll() is None:
+            os.killpg(proc.pid, sig)
+            try:
+                proc.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+        return proc.returncode
+
+    def cleanup(self) -> None:
+        for proc in self.procs:
+            if proc.poll() is None:
+                try:
+                    os.killpg(proc.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+                proc.wait()
+            for stream in (proc.stdout, proc.stderr):
+                if stream is not None:
+                    stream.close()
+
+
+@pytest.fixture
+def processes() -> Iterator[Processes]:
+    procs = Processes()
+    try:
+        yield procs
+    finally:
+        procs.cleanup()
+
+
+def wait_until(predicate, timeout_s: float, period_s: float = 0.02) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(period_s)
+    return predicate()
