@@ -8,6 +8,7 @@ import importlib
 # name -> module; each module has ``add_arguments(parser)`` and ``main(args) -> int``, and keeps its
 # heavy imports inside ``main`` so that ``relaxmap --help`` stays fast.
 BENCHES: dict[str, tuple[str, str]] = {
+    "bus": ("services.bench.bus", "typed pub/sub and queries between two processes; msgspec vs json"),
 }
 
 

@@ -18,7 +18,7 @@ def print_table(title: str, columns: Sequence[str], rows: Sequence[Sequence[obje
         table.add_column(col, justify="left" if i == 0 else "right")
     for row in rows:
         table.add_row(*(_fmt(v) for v in row))
-    console = console or Console()
+    console = console or Console(width=None if Console().is_terminal else 160)
     console.print(table)
     if note:
         console.print(note)

@@ -40,7 +40,9 @@ def query(session: zenoh.Session, key: str, params: str | dict[str, Any] | None 
     sel = key if not params else f"{key}?{params}"
     if fmt != "msgpack":
         sel += (";" if "?" in sel else "?") + f"format={fmt}"
-    for reply in session.get(sel, timeout=timeout_s):
+    # No consolidation: the first reply is handed over at once, not after the query's end.
+    replies = session.get(sel, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE)
+    for reply in replies:
         if reply.err is not None:
             raise QueryFailed(f"{key}: {_error_text(reply.err)}")
         data = reply.ok.payload.to_bytes()

@@ -41,6 +41,11 @@ class TypedPublisher(Generic[T]):
         self._pub.put(codec(self.type).encode(msg))
         self._node._count("messages_out")
 
+    @property
+    def matching_status(self) -> bool:
+        """True when at least one subscriber matches this key."""
+        return self._pub.matching_status
+
     def undeclare(self) -> None:
         self._pub.undeclare()
 
@@ -182,8 +187,10 @@ class Node:
         next_tick = time.monotonic() + period_s
         while not stop.is_set():
             self.spin_once(min(max(next_tick - time.monotonic(), 0.0), period_s))
-            if tick is not None and time.monotonic() >= next_tick:
-                next_tick = time.monotonic() + period_s
+            if time.monotonic() < next_tick:
+                continue
+            next_tick = time.monotonic() + period_s
+            if tick is not None:
                 try:
                     tick()
                 except Exception:
