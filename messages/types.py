@@ -237,12 +237,97 @@ class Health(Message, frozen=True, kw_only=True):
     detail: dict[str, float] = {}  # service-specific counters
 
 
+# --- query replies (relaxer's query API) ------------------------------------------------------------
+
+
+class MapPlace(msgspec.Struct, frozen=True, kw_only=True):
+    """A confirmed place of the map with its relaxed coordinates, metres."""
+
+    place_id: int
+    x_m: float
+    y_m: float
+
+
+class MapLink(msgspec.Struct, frozen=True, kw_only=True):
+    """A traversed link of the map and its (fused) measurement, as in ``LinkMeasured``."""
+
+    from_id: int
+    to_id: int
+    d_m: float
+    theta_rad: float
+    steps: int
+    mean_step_m: float
+    variance_m2: float | None = None
+    traversals: int = 1
+
+
+class MapGraph(msgspec.Struct, frozen=True, kw_only=True):
+    """The whole map (reply of ``map/graph``)."""
+
+    version: int
+    places: list[MapPlace]
+    links: list[MapLink]
+    energy: float
+    noise: NoiseParams
+    pinned: int  # id of the place held fixed (gauge); -1 for an empty map
+
+
+class PlaceReply(msgspec.Struct, frozen=True, kw_only=True):
+    """One place with its links (reply of ``map/place/<id>``)."""
+
+    place: MapPlace
+    links: list[MapLink]
+
+
+class PathReply(msgspec.Struct, frozen=True, kw_only=True):
+    """Shortest path over traversed links (reply of ``map/path``)."""
+
+    from_id: int
+    to_id: int
+    places: list[int]  # from_id first, to_id last
+    length_m: float  # sum of the measured link distances along the path
+
+
+class OccupancyGrid(msgspec.Struct, frozen=True, kw_only=True):
+    """A global occupancy grid (reply of ``map/grid``), row-major from the origin corner.
+
+    ``cells`` holds one byte per cell: 0-100 occupancy probability in percent, 255 unknown (as ROS's
+    -1). Row ``r``, column ``c`` covers ``x = origin_x_m + c * resolution_m`` and
+    ``y = origin_y_m + r * resolution_m``.
+    """
+
+    resolution_m: float
+    origin_x_m: float
+    origin_y_m: float
+    width: int
+    height: int
+    cells: bytes
+    version: int  # map version the grid was built from
+
+
+class MapStats(msgspec.Struct, frozen=True, kw_only=True):
+    """Counts, energy, iterations and timings of the relaxer (reply of ``map/stats``)."""
+
+    version: int
+    places: int
+    links: int
+    energy: float
+    updates: int  # relaxation cycles run
+    iterations: int  # sweeps or solver iterations over all cycles
+    cycle_ms_mean: float
+    cycle_ms_p99: float
+    methods: dict[str, int]  # cycles per method ("sweep", "exact", ...)
+    noise: NoiseParams
+
+
 class ErrorReply(msgspec.Struct, frozen=True, kw_only=True):
     """Payload of an error reply to a query: what was wrong."""
 
     error: str
     key: str
 
+
+ALL_REPLIES: tuple[type, ...] = (MapGraph, PlaceReply, PathReply, OccupancyGrid, MapStats, ErrorReply)
 
 ALL_MESSAGES: tuple[type[Message], ...] = (
     OdometryStep,

@@ -11,6 +11,7 @@ import sys
 # and keeps its heavy imports inside ``main`` so that ``relaxmap --help`` stays fast.
 COMMANDS: dict[str, tuple[str, str]] = {
     "schema": ("services.schema_cli", "print the JSON Schema of every bus message"),
+    "query": ("services.query_cli", "ask a running system (prints JSON)"),
     "bench": ("services.bench", "run the benchmarks (tables, never pass/fail)"),
 }
 

@@ -7,8 +7,7 @@ import sys
 
 import msgspec
 
-from messages import ALL_MESSAGES
-from messages.types import ErrorReply
+from messages import ALL_MESSAGES, ALL_REPLIES
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -16,8 +15,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def schema() -> dict:
-    """One JSON Schema document whose ``$defs`` hold every message type (and the error reply)."""
-    _, components = msgspec.json.schema_components((*ALL_MESSAGES, ErrorReply))
+    """One JSON Schema document whose ``$defs`` hold every message type and every query reply."""
+    _, components = msgspec.json.schema_components((*ALL_MESSAGES, *ALL_REPLIES))
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "title": "relaxmap bus messages",

@@ -40,18 +40,25 @@ def query(session: zenoh.Session, key: str, params: str | dict[str, Any] | None 
     sel = key if not params else f"{key}?{params}"
     if fmt != "msgpack":
         sel += (";" if "?" in sel else "?") + f"format={fmt}"
-    # No consolidation: the first reply is handed over at once, not after the query's end.
-    replies = session.get(sel, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE)
-    for reply in replies:
-        if reply.err is not None:
-            raise QueryFailed(f"{key}: {_error_text(reply.err)}")
-        data = reply.ok.payload.to_bytes()
-        try:
-            if type_ is not None:
-                return codec(type_).decode(data) if fmt == "msgpack" else codec(type_).decode_json(data)
-            return msgspec.msgpack.decode(data) if fmt == "msgpack" else msgspec.json.decode(data)
-        except DecodeError as e:
-            raise QueryFailed(f"{key}: undecodable reply: {e}") from e
+    # A session that has just opened may not know the queryable yet (declarations take a moment to
+    # propagate): then the query ends at once with no reply, and it is asked again until the timeout.
+    deadline = time.monotonic() + timeout_s
+    while True:
+        # No consolidation: the first reply is handed over at once, not after the query's end.
+        left = max(deadline - time.monotonic(), 0.001)
+        for reply in session.get(sel, timeout=left, consolidation=zenoh.ConsolidationMode.NONE):
+            if reply.err is not None:
+                raise QueryFailed(f"{key}: {_error_text(reply.err)}")
+            data = reply.ok.payload.to_bytes()
+            try:
+                if type_ is not None:
+                    return codec(type_).decode(data) if fmt == "msgpack" else codec(type_).decode_json(data)
+                return msgspec.msgpack.decode(data) if fmt == "msgpack" else msgspec.json.decode(data)
+            except DecodeError as e:
+                raise QueryFailed(f"{key}: undecodable reply: {e}") from e
+        if time.monotonic() + 0.05 >= deadline:
+            break
+        time.sleep(0.05)
     raise QueryFailed(f"{key}: no reply within {timeout_s:g} s (is the service running?)")
 
 

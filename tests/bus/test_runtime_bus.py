@@ -136,3 +136,19 @@ def test_zenoh_session_from_default_config_is_loopback_only():
     assert all("127.0.0.1" in e for e in json.loads(conf.get_json("listen/endpoints")))
     assert all("127.0.0.1" in e for e in json.loads(conf.get_json("connect/endpoints")))
     assert isinstance(conf, zenoh.Config)
+
+
+def test_query_command_prints_json_and_reports_errors(echo, hub):
+    import subprocess
+    import sys
+
+    _, endpoint = hub
+    base = [sys.executable, "-m", "services.cli", "query", "--robot", ROBOT, "--connect", endpoint,
+            "--listen", "tcp/127.0.0.1:0"]
+    ok = subprocess.run([*base, "test/sum", "a=2", "b=0.5"], capture_output=True, text=True, timeout=60)
+    assert ok.returncode == 0, ok.stderr
+    assert json.loads(ok.stdout) == {"sum": 2.5}
+    bad = subprocess.run([*base, "test/sum", "a=x"], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 1 and "parameter 'a' must be a number" in bad.stderr
+    malformed = subprocess.run([*base, "test/sum", "a"], capture_output=True, text=True, timeout=60)
+    assert malformed.returncode == 2 and "not of the form k=v" in malformed.stderr

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from messages import ALL_MESSAGES, topics
+from messages import ALL_MESSAGES, ALL_REPLIES, topics
 from messages.codec import codec
 from messages.types import Pose2
 
@@ -21,6 +21,8 @@ def _strategy(t: msgspec.inspect.Type) -> st.SearchStrategy:
         return st.integers(min_value=-(2**63), max_value=2**63 - 1)
     if isinstance(t, mi.BoolType):
         return st.booleans()
+    if isinstance(t, mi.BytesType):
+        return st.binary(max_size=20)
     if isinstance(t, mi.StrType):
         return st.text(max_size=20)
     if isinstance(t, mi.NoneType):
@@ -40,7 +42,7 @@ def message_strategy(cls: type) -> st.SearchStrategy:
     return _strategy(msgspec.inspect.type_info(cls))
 
 
-@pytest.mark.parametrize("cls", ALL_MESSAGES, ids=lambda c: c.__name__)
+@pytest.mark.parametrize("cls", ALL_MESSAGES + ALL_REPLIES, ids=lambda c: c.__name__)
 @settings(max_examples=40, deadline=None)
 @given(data=st.data())
 def test_round_trip(cls, data):
@@ -99,4 +101,4 @@ def test_schema_command(capsys):
 
     assert main(["schema"]) == 0
     doc = msgspec.json.decode(capsys.readouterr().out)
-    assert {c.__name__ for c in ALL_MESSAGES} <= set(doc["$defs"])
+    assert {c.__name__ for c in ALL_MESSAGES + ALL_REPLIES} <= set(doc["$defs"])

@@ -1,0 +1,1 @@
+"""``relaxmap run``: the process graph (data in ``deploy/``), its supervisor, and the run's outputs."""
