@@ -1,0 +1,192 @@
+"""Multi-hypothesis belief over places: motion prior from dead reckoning, match likelihood, offset filter."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Belief:
+    """Probability of each known place and of "none of them", with the robot's offset per place.
+
+    Attributes
+    ----------
+    ids : numpy.ndarray
+        Place ids, shape ``(P,)``.
+    centres : numpy.ndarray
+        Place centres, shape ``(P, 2)``, metres.
+    probs : numpy.ndarray
+        Probability that the robot is at each place, shape ``(P,)``.
+    offsets : numpy.ndarray
+        Filtered offset of the robot from each centre (robot minus centre), ``(P, 2)``, metres.
+    offset_vars : numpy.ndarray
+        Variance of each offset per axis, ``(P, 2)``, m^2.
+    none_prob : float
+        Probability that the robot is at no known place (between places, or at a new one).
+    none_xy : numpy.ndarray
+        Expected robot position under the "none" hypothesis, ``(2,)``.
+    none_var_m2 : float
+        Its variance per axis.
+    """
+
+    ids: np.ndarray
+    centres: np.ndarray
+    probs: np.ndarray
+    offsets: np.ndarray
+    offset_vars: np.ndarray
+    none_prob: float
+    none_xy: np.ndarray
+    none_var_m2: float
+
+    @classmethod
+    def empty(cls, xy: tuple[float, float] = (0.0, 0.0)) -> Belief:
+        """No place known: the robot is certainly at "none", at ``xy``."""
+        return cls(ids=np.zeros(0, dtype=int), centres=np.zeros((0, 2)), probs=np.zeros(0),
+                   offsets=np.zeros((0, 2)), offset_vars=np.zeros((0, 2)), none_prob=1.0,
+                   none_xy=np.asarray(xy, dtype=float), none_var_m2=0.0)
+
+    def index(self, place_id: int) -> int:
+        """Row of ``place_id``; ``KeyError`` when unknown."""
+        hits = np.flatnonzero(self.ids == place_id)
+        if hits.size == 0:
+            raise KeyError(place_id)
+        return int(hits[0])
+
+
+def _logsumexp(a: np.ndarray, axis: int) -> np.ndarray:
+    m = np.max(a, axis=axis, keepdims=True)
+    return (m + np.log(np.exp(a - m).sum(axis=axis, keepdims=True))).squeeze(axis)
+
+
+def predict(belief: Belief, displacement_xy: np.ndarray, *, transition_std_m: float,
+            transition_var_per_m_m2: float, place_radius_m: float, uniform_transition: float,
+            unknown_offset_var_m2: float) -> Belief:
+    """Move the belief by a dead-reckoned displacement (the prior of the next observation).
+
+    Notes
+    -----
+    Every hypothesis ``h`` (each place, and "none") is a source with an expected robot position
+    ``u_h`` (place centre plus offset, or the "none" position) moved by the displacement ``D``:
+    ``u_h + D``, with variance ``v_h + q |D|`` per axis (``q = transition_var_per_m_m2``). Its mass
+    goes to place ``j`` in proportion to ``exp(-|u_h + D - c_j|^2 / (2 s_h^2))``, with
+    ``s_h^2 = v_h + q |D| + transition_std_m^2``, and to "none" in proportion to
+    ``exp(-R^2 / (2 s_h^2))`` (``R = place_radius_m``): "none" acts as a virtual place at distance
+    ``R``, so the mass leaves a place when the robot moves beyond its radius. A fraction
+    ``uniform_transition`` of all mass is spread evenly over every place and "none" (relocalisation
+    after a long loop, when dead reckoning and the map disagree by more than the kernel allows);
+    that part carries no position, so it arrives at the centre with ``unknown_offset_var_m2``.
+    The offsets of each target (and the "none" position) are the moment-matched mixture of what
+    arrives (mean and variance per axis).
+    """
+    d = np.asarray(displacement_xy, dtype=float)
+    dist = float(np.hypot(*d))
+    P = belief.ids.size
+    pos = np.vstack([belief.centres + belief.offsets + d, belief.none_xy + d])  # (S, 2)
+    src_var = np.vstack([belief.offset_vars, np.full((1, 2), belief.none_var_m2)])
+    src_var = src_var + transition_var_per_m_m2 * dist
+    kvar = src_var.mean(axis=1) + transition_std_m**2  # (S,)
+    ps = np.append(belief.probs, belief.none_prob)
+    diff = pos[:, None, :] - belief.centres[None, :, :]  # (S, P, 2): offset from each target centre
+    log_k = np.concatenate(
+        [-(diff**2).sum(axis=-1) / (2.0 * kvar[:, None]), (-(place_radius_m**2) / (2.0 * kvar))[:, None]],
+        axis=1,
+    )  # (S, P + 1): last column is "none"
+    trans = np.exp(log_k - _logsumexp(log_k, axis=1)[:, None])
+    informed = (1.0 - uniform_transition) * ps[:, None] * trans  # (S, P + 1)
+    uniform = uniform_transition * ps.sum() / (P + 1)
+    prior = informed.sum(axis=0) + uniform  # (P + 1,)
+
+    w = informed[:, :P]  # (S, P)
+    tot = prior[:P]
+    mean = np.einsum("sp,spk->pk", w, diff) / tot[:, None]
+    second = (np.einsum("sp,spk->pk", w, src_var[:, None, :] + diff**2)
+              + uniform * unknown_offset_var_m2) / tot[:, None]
+    var = np.maximum(second - mean**2, 0.0)
+
+    wn = informed[:, P]
+    if wn.sum() > 0.0:
+        none_xy = (wn[:, None] * pos).sum(axis=0) / wn.sum()
+        none_second = (wn[:, None] * (src_var + (pos - none_xy) ** 2)).sum(axis=0) / wn.sum()
+        none_var = float(none_second.mean())
+    else:
+        none_xy, none_var = belief.none_xy + d, belief.none_var_m2 + transition_var_per_m_m2 * dist
+    total = prior.sum()
+    return replace(belief, probs=prior[:P] / total, offsets=mean, offset_vars=var,
+                   none_prob=float(prior[P] / total), none_xy=none_xy, none_var_m2=none_var)
+
+
+def correct(belief: Belief, scores: np.ndarray, observed_offsets: np.ndarray,
+            observed_vars: np.ndarray, *, match_sharpness: float, new_place_match: float) -> Belief:
+    """Bayes update with the match scores, and the offset filter (Eqs. 22-23).
+
+    Parameters
+    ----------
+    scores : numpy.ndarray
+        Match score of each place in ``[0, 1]``, ``(P,)``; NaN where a place has no signature.
+    observed_offsets, observed_vars : numpy.ndarray
+        ``r*`` and ``sigma*^2`` per place and axis, ``(P, 2)`` (from the best shift, Eqs. 20-21).
+    match_sharpness, new_place_match : float
+        ``beta`` and the virtual score ``M_new`` of the "none" hypothesis.
+
+    Notes
+    -----
+    Likelihood ``exp(beta (M_j - 1))`` for place ``j`` and ``exp(beta (M_new - 1))`` for "none"; a
+    place without a signature gets the "none" likelihood (no evidence either way). Offsets, per
+    axis, with ``r'`` and ``s'^2`` from :func:`predict`:
+
+        r = r' + s'^2 / (s'^2 + s*^2) (r* - r')        (Eq. 22)
+        1 / s^2 = 1 / s'^2 + 1 / s*^2                   (Eq. 23)
+    """
+    scores = np.asarray(scores, dtype=float)
+    has = ~np.isnan(scores)
+    log_lik = np.where(has, match_sharpness * (np.nan_to_num(scores) - 1.0),
+                       match_sharpness * (new_place_match - 1.0))
+    log_post = np.append(np.log(np.maximum(belief.probs, 1e-300)) + log_lik,
+                         np.log(max(belief.none_prob, 1e-300)) + match_sharpness * (new_place_match - 1.0))
+    post = np.exp(log_post - _logsumexp(log_post, axis=0))
+
+    v_prior = belief.offset_vars
+    den = v_prior + observed_vars
+    gain = np.divide(v_prior, den, out=np.zeros_like(v_prior), where=den > 0)
+    gain = np.where(has[:, None], gain, 0.0)
+    offsets = belief.offsets + gain * (np.nan_to_num(observed_offsets) - belief.offsets)
+    var = np.where(has[:, None], (1.0 - gain) * v_prior, v_prior)  # equals Eq. 23
+    return replace(belief, probs=post[:-1], none_prob=float(post[-1]), offsets=offsets, offset_vars=var)
+
+
+def add_place(belief: Belief, place_id: int, centre_xy: tuple[float, float], *, probability: float) -> Belief:
+    """Append a place the robot is at now (offset zero, exactly known) with ``probability``."""
+    keep = 1.0 - probability
+    return replace(
+        belief,
+        ids=np.append(belief.ids, place_id),
+        centres=np.vstack([belief.centres, np.asarray(centre_xy, dtype=float)[None]]),
+        probs=np.append(belief.probs * keep, probability),
+        offsets=np.vstack([belief.offsets, np.zeros((1, 2))]),
+        offset_vars=np.vstack([belief.offset_vars, np.zeros((1, 2))]),
+        none_prob=belief.none_prob * keep,
+    )
+
+
+def remove_place(belief: Belief, place_id: int) -> Belief:
+    """Drop a place and renormalise (its mass goes to every other hypothesis in proportion)."""
+    keep = belief.ids != place_id
+    probs = belief.probs[keep]
+    total = probs.sum() + belief.none_prob
+    if total <= 0.0:
+        probs, none_prob = probs, 1.0
+    else:
+        probs, none_prob = probs / total, belief.none_prob / total
+    return replace(belief, ids=belief.ids[keep], centres=belief.centres[keep], probs=probs,
+                   offsets=belief.offsets[keep], offset_vars=belief.offset_vars[keep], none_prob=none_prob)
+
+
+def move_places(belief: Belief, centres: dict[int, tuple[float, float]]) -> Belief:
+    """New centre coordinates (e.g. after relaxation); offsets are relative and stay."""
+    new = belief.centres.copy()
+    for row, pid in enumerate(belief.ids):
+        if int(pid) in centres:
+            new[row] = centres[int(pid)]
+    return replace(belief, centres=new)

@@ -1,0 +1,434 @@
+"""Place recognizer core: local grids, histogram match, belief over places and link measurements."""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from messages.types import DeadReckonedPose, SonarScan
+from services.place_recognizer import belief as _belief
+from services.place_recognizer.grid import PlacedScan, build_grid, classify, integrate_scan
+from services.place_recognizer.histogram import Histograms, histograms, match_axis, match_error_variance
+
+NO_PLACE = -1  # place id of the "no known place" hypothesis and of "between places"
+
+
+@dataclass(frozen=True)
+class PlaceRecognizerParams:
+    """Parameters of the place recognizer core (defaults in code; deploy files only override)."""
+
+    cell_m: float = 0.15  # side of a local grid cell (Section 4.3)
+    grid_half_width_m: float = 3.0  # a local grid spans +-this around its centre on each axis
+    logodds_occupied: float = 0.9  # log-odds added to cells at an echo's range inside its cone
+    logodds_empty: float = -0.4  # log-odds added to cells a beam passed through
+    logodds_threshold: float = 0.2  # cells with |log-odds| below this count as unknown
+    echo_thickness_m: float = 0.15  # radial thickness of the occupied arc of an echo
+    max_shift_m: float = 1.5  # largest offset searched by the histogram match, per axis
+    match_error_k_m2: float = 1e-3  # k of Eqs. 20-21 (the paper's 1 m^2 was for its own Match scale)
+    min_match_spread: float = 0.02  # floor of M* - M-bar in Eqs. 20-21
+    observation_window_m: float = 0.5  # scans over this much recent path build one observation grid
+    observation_max_scans: int = 8  # at most this many scans in one observation grid
+    signature_radius_m: float = 0.5  # scans within this of a new place's centre build its signature
+    place_radius_m: float = 0.5  # the robot is at a place while its filtered offset is within this
+    localized_probability: float = 0.5  # the best place must be at least this probable to count
+    transition_std_m: float = 0.1  # width of the motion kernel on top of the position variance
+    transition_var_per_m_m2: float = 0.02  # dead-reckoning position variance added per metre travelled
+    uniform_transition: float = 1e-3  # fraction of belief mass spread evenly per update (relocalisation)
+    unknown_offset_var_m2: float = 0.25  # offset variance of mass arriving without a position
+    match_sharpness: float = 40.0  # beta: likelihood exp(beta (M - 1)) of a match score M
+    new_place_match: float = 0.9  # virtual match score of the "no known place" hypothesis
+    confirmed_probability: float = 0.95  # belief in a place at the moment it is confirmed
+    settle_observations: int = 3  # observations at a revisited place before its link is measured
+    link_fuse_gate_m: float = 1.0  # a later traversal further than this from the fused link is rejected
+    max_hypotheses: int = 5  # hypotheses reported in the localization (most probable first)
+
+
+@dataclass(frozen=True)
+class Localization:
+    """The belief as published (fields of :class:`messages.types.LocalizationBelief`).
+
+    ``place_id`` is the place the robot is at, or -1 between places; ``probability`` and the
+    offset (robot minus centre, world frame) belong to the most probable place hypothesis even when
+    ``place_id`` is -1. ``hypotheses`` lists ``(place_id, probability)`` most probable first, -1
+    standing for "no known place".
+    """
+
+    place_id: int
+    probability: float
+    offset_x_m: float
+    offset_y_m: float
+    offset_var_m2: float
+    hypotheses: tuple[tuple[int, float], ...]
+
+
+@dataclass(frozen=True)
+class LinkEstimate:
+    """A link measurement (fields of :class:`messages.types.LinkMeasured`), fused over traversals."""
+
+    from_id: int
+    to_id: int
+    d_m: float
+    theta_rad: float
+    steps: int
+    mean_step_m: float
+    traversals: int
+
+
+@dataclass(frozen=True)
+class RecognizerOutput:
+    """What one call returns: the localization, links measured now, diagnostics."""
+
+    localization: Localization
+    links: tuple[LinkEstimate, ...] = ()
+    diagnostics: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class _Mark:
+    """Where the robot was (dead reckoning and step record) with its offset from a place."""
+
+    place_id: int
+    dr_xy: tuple[float, float]
+    steps: int
+    path_length_m: float
+    offset_xy: tuple[float, float]
+
+
+@dataclass
+class _Pending:
+    """A traversal that has arrived and waits for the arrival offset to settle."""
+
+    departure: _Mark
+    to_id: int
+    arrival_dr_xy: tuple[float, float]
+    arrival_steps: int
+    arrival_path_m: float
+    observations: int
+
+
+@dataclass
+class _Signature:
+    """A place's stored local grid (centred on the place, dead-reckoning frame) and its histograms."""
+
+    logodds: np.ndarray
+    hist: Histograms
+    anchor_dr_xy: tuple[float, float]
+
+
+@dataclass
+class _FusedLink:
+    """Information-weighted sums over the traversals of one link, in its first direction."""
+
+    from_id: int
+    to_id: int
+    sum_w: float  # sum of 1 / T_k
+    sum_wd: np.ndarray  # sum of D_k / T_k
+    sum_wstep: float  # sum of mean_step_k / T_k
+    traversals: int
+
+    def estimate(self) -> LinkEstimate:
+        d = self.sum_wd / self.sum_w
+        return LinkEstimate(
+            from_id=self.from_id, to_id=self.to_id, d_m=float(np.hypot(*d)),
+            theta_rad=float(np.arctan2(d[1], d[0])), steps=max(1, int(round(1.0 / self.sum_w))),
+            mean_step_m=float(self.sum_wstep / self.sum_w), traversals=self.traversals,
+        )
+
+
+class PlaceRecognizer:
+    """Recognises places from sonar and measures the links between them.
+
+    Call :meth:`step` with each sonar scan and the dead-reckoned pose it was taken at; call
+    :meth:`add_place` when the explorer confirms a place (the robot is there now),
+    :meth:`remove_place` when a place is deleted and :meth:`move_places` with relaxed coordinates.
+
+    Notes
+    -----
+    Observation: the scans of the last ``observation_window_m`` of path, placed by dead reckoning,
+    build a local grid centred on the robot, reduced to x and y histograms; each place's stored
+    histograms are matched against them over all shifts (Eq. 19). The best shifts times the cell
+    size are the offsets ``r*`` (robot minus centre) and Eqs. 20-21 their variances. The score of a
+    place is the mean of its x and y best scores. The belief is the hidden-Markov filter of
+    :mod:`services.place_recognizer.belief`. The robot is *at* place ``j`` when ``j`` is the most
+    probable hypothesis, with probability at least ``localized_probability`` and a filtered offset
+    no longer than ``place_radius_m``; otherwise it is between places (-1).
+
+    Link measurement (Eqs. 24-27): leaving place ``i`` (last mark inside it: dead-reckoned position
+    ``p_i``, offset ``r_i``) and arriving at ``j`` (``p_j``) measures
+    ``D = r_i + (p_j - p_i) - r_j``, ``d = |D|``, ``theta = atan2(D_y, D_x)``; the mean step
+    ``delta-bar`` is the path length over the odometry steps between the two marks, and ``T`` the
+    larger of those steps and ``round(d / delta-bar)`` (the marks lie inside the places, so the steps
+    between them miss part of the centre-to-centre distance that Eq. 5 accounts for). At a new place ``r_j = 0`` exactly (its centre is where the
+    robot stands), so the link is measured at once; at a known place ``r_j`` is taken after
+    ``settle_observations`` filtered observations (or on leaving), moved back to the arrival by dead
+    reckoning.
+
+    Fusing rule for later traversals: each traversal ``k`` is weighted by ``1 / T_k`` (its
+    variance grows with its step count, Eq. 5); the link's displacement is the weighted mean
+    ``sum(D_k / T_k) / sum(1 / T_k)`` (reverse traversals enter negated), its step count the
+    equivalent ``round(1 / sum(1 / T_k))`` (so the relaxer sees the fused, smaller covariance), its
+    mean step the weighted mean of the mean steps, and ``traversals`` counts them. A traversal
+    further than ``link_fuse_gate_m`` from the fused displacement is rejected as a misrecognition.
+    """
+
+    def __init__(self, params: PlaceRecognizerParams | None = None) -> None:
+        self.params = params or PlaceRecognizerParams()
+        self.belief = _belief.Belief.empty()
+        self.current = NO_PLACE
+        self._signatures: dict[int, _Signature] = {}
+        self._first_visit: int = NO_PLACE  # the new place whose signature still grows
+        self._scans: deque[tuple[PlacedScan, float]] = deque()
+        self._last_xy: tuple[float, float] | None = None
+        self._inside: _Mark | None = None
+        self._departure: _Mark | None = None
+        self._pending: _Pending | None = None
+        self._links: dict[frozenset[int], _FusedLink] = {}
+
+    # --- inputs -------------------------------------------------------------------------------
+
+    def step(self, dr: DeadReckonedPose, scan: SonarScan) -> RecognizerOutput:
+        """One observation: a sonar scan and the dead-reckoned pose it was taken at.
+
+        Parameters
+        ----------
+        dr : messages.types.DeadReckonedPose
+            Its ``compass`` pose places the scan; ``steps`` and ``path_length_m`` give ``T`` and the
+            mean step of link measurements.
+        scan : messages.types.SonarScan
+
+        Returns
+        -------
+        RecognizerOutput
+            Localization, the links measured by this observation (usually none), diagnostics
+            (``best_score``, ``none_prob``, ``places``).
+        """
+        p = self.params
+        placed = PlacedScan.from_message(scan, dr.compass)
+        xy = (dr.compass.x_m, dr.compass.y_m)
+        self._remember_scan(placed, dr.path_length_m)
+        if self._last_xy is None:
+            self.belief = _belief.Belief.empty(xy) if self.belief.ids.size == 0 else self.belief
+            move = np.zeros(2)
+        else:
+            move = np.subtract(xy, self._last_xy)
+        self._last_xy = xy
+        self.belief = _belief.predict(
+            self.belief, move, transition_std_m=p.transition_std_m,
+            transition_var_per_m_m2=p.transition_var_per_m_m2, place_radius_m=p.place_radius_m,
+            uniform_transition=p.uniform_transition, unknown_offset_var_m2=p.unknown_offset_var_m2,
+        )
+        scores, offsets, variances = self.match(xy)
+        self.belief = _belief.correct(self.belief, scores, offsets, variances,
+                                      match_sharpness=p.match_sharpness, new_place_match=p.new_place_match)
+        if self._first_visit == self.current and self.current != NO_PLACE:
+            self._grow_signature(self.current, placed)
+        links = self._track(dr)
+        valid = scores[~np.isnan(scores)]
+        diag = {"best_score": float(valid.max()) if valid.size else float("nan"),
+                "none_prob": self.belief.none_prob, "places": float(self.belief.ids.size)}
+        return RecognizerOutput(localization=self.localization(), links=links, diagnostics=diag)
+
+    def add_place(self, place_id: int, x_m: float, y_m: float, dr: DeadReckonedPose) -> RecognizerOutput:
+        """A place confirmed by the explorer at the robot's position; stores its signature.
+
+        The signature is the grid of the recent scans taken within ``signature_radius_m`` of the
+        robot, centred on it; it keeps growing with the scans taken at the place until the robot
+        first leaves it. If the robot had left another place, the link to the new one is measured
+        now (the offset at the new place is zero by definition).
+        """
+        p = self.params
+        xy = (dr.compass.x_m, dr.compass.y_m)
+        near = [s for s, _ in self._scans if np.hypot(s.x_m - xy[0], s.y_m - xy[1]) <= p.signature_radius_m]
+        grid = build_grid(near, xy, half_width_m=p.grid_half_width_m, cell_m=p.cell_m,
+                          logodds_occupied=p.logodds_occupied, logodds_empty=p.logodds_empty,
+                          echo_thickness_m=p.echo_thickness_m)
+        self._signatures[place_id] = _Signature(grid, histograms(classify(grid, p.logodds_threshold)), xy)
+        if place_id in set(self.belief.ids.tolist()):
+            self.belief = _belief.remove_place(self.belief, place_id)
+        if self._last_xy is None:
+            self._last_xy = xy
+            self.belief = _belief.Belief.empty(xy)
+        self.belief = _belief.add_place(self.belief, place_id, (x_m, y_m), probability=p.confirmed_probability)
+        self._first_visit = place_id
+        links = self._arrive_or_leave(place_id, dr, settled_now=True)
+        return RecognizerOutput(localization=self.localization(), links=links,
+                                diagnostics={"places": float(self.belief.ids.size)})
+
+    def remove_place(self, place_id: int) -> None:
+        """Forget a deleted place: its belief mass, signature and links."""
+        if place_id in set(self.belief.ids.tolist()):
+            self.belief = _belief.remove_place(self.belief, place_id)
+        self._signatures.pop(place_id, None)
+        self._links = {k: v for k, v in self._links.items() if place_id not in k}
+        if self.current == place_id:
+            self.current, self._inside = NO_PLACE, None
+        if self._departure is not None and self._departure.place_id == place_id:
+            self._departure = None
+        if self._pending is not None and place_id in (self._pending.to_id, self._pending.departure.place_id):
+            self._pending = None
+        if self._first_visit == place_id:
+            self._first_visit = NO_PLACE
+
+    def move_places(self, centres: Mapping[int, tuple[float, float]]) -> None:
+        """New coordinates of places (e.g. relaxed); offsets are relative and stay."""
+        self.belief = _belief.move_places(self.belief, dict(centres))
+
+    # --- queries ------------------------------------------------------------------------------
+
+    def signature(self, place_id: int) -> Histograms:
+        """The stored histograms of a place."""
+        return self._signatures[place_id].hist
+
+    def link(self, a: int, b: int) -> LinkEstimate | None:
+        """The fused measurement of the link between two places, in its first direction."""
+        fused = self._links.get(frozenset((a, b)))
+        return None if fused is None else fused.estimate()
+
+    def localization(self) -> Localization:
+        """The current belief as published."""
+        b, p = self.belief, self.params
+        entries = [(int(i), float(q)) for i, q in zip(b.ids, b.probs, strict=True)] + [(NO_PLACE, b.none_prob)]
+        entries.sort(key=lambda e: -e[1])
+        if b.ids.size:
+            row = int(np.argmax(b.probs))
+            off, var = b.offsets[row], float(b.offset_vars[row].mean())
+            prob = float(b.probs[row])
+        else:
+            off, var, prob = np.zeros(2), 0.0, 0.0
+        return Localization(place_id=self.current, probability=prob, offset_x_m=float(off[0]),
+                            offset_y_m=float(off[1]), offset_var_m2=var,
+                            hypotheses=tuple(entries[: p.max_hypotheses]))
+
+    def match(self, xy: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Match the observation grid at ``xy`` (recent scans) against every place's signature.
+
+        Returns
+        -------
+        scores : numpy.ndarray
+            ``(P,)`` in belief order, the mean of the x and y best scores; NaN without signature.
+        offsets, variances : numpy.ndarray
+            ``(P, 2)``: ``r*`` (best shift times cell size, Section 4.3) and ``sigma*^2`` (Eqs. 20-21).
+        """
+        p = self.params
+        P = self.belief.ids.size
+        scores = np.full(P, np.nan)
+        offsets = np.zeros((P, 2))
+        variances = np.full((P, 2), np.inf)
+        rows = [r for r, pid in enumerate(self.belief.ids) if int(pid) in self._signatures]
+        if not rows or not self._scans:
+            return scores, offsets, variances
+        grid = build_grid([s for s, _ in self._scans], xy, half_width_m=p.grid_half_width_m, cell_m=p.cell_m,
+                          logodds_occupied=p.logodds_occupied, logodds_empty=p.logodds_empty,
+                          echo_thickness_m=p.echo_thickness_m)
+        obs = histograms(classify(grid, p.logodds_threshold))
+        sx = np.stack([self._signatures[int(self.belief.ids[r])].hist.x for r in rows])
+        sy = np.stack([self._signatures[int(self.belief.ids[r])].hist.y for r in rows])
+        max_shift = int(round(p.max_shift_m / p.cell_m))
+        mx, my = match_axis(obs.x, sx, max_shift), match_axis(obs.y, sy, max_shift)
+        scores[rows] = 0.5 * (mx.best_score + my.best_score)
+        offsets[rows] = np.stack([mx.best_shift, my.best_shift], axis=1) * p.cell_m
+        variances[rows] = np.stack([
+            match_error_variance(mx.best_score, mx.mean_score, k_m2=p.match_error_k_m2, min_spread=p.min_match_spread),
+            match_error_variance(my.best_score, my.mean_score, k_m2=p.match_error_k_m2, min_spread=p.min_match_spread),
+        ], axis=1)
+        return scores, offsets, variances
+
+    # --- internals ----------------------------------------------------------------------------
+
+    def _remember_scan(self, scan: PlacedScan, path_m: float) -> None:
+        p = self.params
+        self._scans.append((scan, path_m))
+        while len(self._scans) > 1 and (
+            len(self._scans) > p.observation_max_scans or path_m - self._scans[0][1] > p.observation_window_m
+        ):
+            self._scans.popleft()
+
+    def _grow_signature(self, place_id: int, scan: PlacedScan) -> None:
+        p = self.params
+        sig = self._signatures.get(place_id)
+        if sig is None or np.hypot(scan.x_m - sig.anchor_dr_xy[0], scan.y_m - sig.anchor_dr_xy[1]) > p.signature_radius_m:
+            return
+        sig.logodds = integrate_scan(sig.logodds, sig.anchor_dr_xy, scan, cell_m=p.cell_m,
+                                     logodds_occupied=p.logodds_occupied, logodds_empty=p.logodds_empty,
+                                     echo_thickness_m=p.echo_thickness_m)
+        sig.hist = histograms(classify(sig.logodds, p.logodds_threshold))
+
+    def _at_place(self) -> int:
+        b, p = self.belief, self.params
+        if b.ids.size == 0:
+            return NO_PLACE
+        row = int(np.argmax(b.probs))
+        if b.probs[row] < max(p.localized_probability, b.none_prob):
+            return NO_PLACE
+        if np.hypot(*b.offsets[row]) > p.place_radius_m:
+            return NO_PLACE
+        return int(b.ids[row])
+
+    def _mark(self, place_id: int, dr: DeadReckonedPose) -> _Mark:
+        row = self.belief.index(place_id)
+        return _Mark(place_id, (dr.compass.x_m, dr.compass.y_m), dr.steps, dr.path_length_m,
+                     (float(self.belief.offsets[row, 0]), float(self.belief.offsets[row, 1])))
+
+    def _track(self, dr: DeadReckonedPose) -> tuple[LinkEstimate, ...]:
+        return self._arrive_or_leave(self._at_place(), dr, settled_now=False)
+
+    def _arrive_or_leave(self, new: int, dr: DeadReckonedPose, *, settled_now: bool) -> tuple[LinkEstimate, ...]:
+        links: list[LinkEstimate] = []
+        if new != self.current:
+            if self.current != NO_PLACE:
+                if self._pending is not None and self._pending.to_id == self.current and self._inside is not None:
+                    links += self._finish(self._pending, self._inside)
+                self._departure = self._inside
+                if self._first_visit == self.current:
+                    self._first_visit = NO_PLACE
+            self._pending = None
+            if new != NO_PLACE and self._departure is not None and self._departure.place_id != new:
+                self._pending = _Pending(self._departure, new, (dr.compass.x_m, dr.compass.y_m), dr.steps,
+                                         dr.path_length_m, 0)
+                self._departure = None
+            elif new != NO_PLACE:
+                self._departure = None
+            self.current = new
+        if self.current != NO_PLACE:
+            self._inside = self._mark(self.current, dr)
+            pend = self._pending
+            if pend is not None and pend.to_id == self.current:
+                pend.observations += 1
+                if settled_now or pend.observations >= self.params.settle_observations:
+                    links += self._finish(pend, self._inside)
+                    self._pending = None
+        return tuple(links)
+
+    def _finish(self, pend: _Pending, at: _Mark) -> list[LinkEstimate]:
+        """Measure the pending link with the offset at ``at`` moved back to the arrival (Eqs. 24-27)."""
+        dep = pend.departure
+        r_to_arrival = np.subtract(at.offset_xy, np.subtract(at.dr_xy, pend.arrival_dr_xy))
+        disp = np.asarray(dep.offset_xy) + np.subtract(pend.arrival_dr_xy, dep.dr_xy) - r_to_arrival
+        gap_steps = pend.arrival_steps - dep.steps
+        path = pend.arrival_path_m - dep.path_length_m
+        d = float(np.hypot(*disp))
+        mean_step = path / gap_steps if gap_steps >= 1 and path > 0.0 else max(d, 1e-6)
+        # the marks are inside the places: count the steps of the whole centre-to-centre distance
+        steps = max(1, gap_steps, int(round(d / mean_step)))
+        est = self._fuse(dep.place_id, pend.to_id, disp, steps, mean_step)
+        return [] if est is None else [est]
+
+    def _fuse(self, a: int, b: int, disp: np.ndarray, steps: int, mean_step: float) -> LinkEstimate | None:
+        key = frozenset((a, b))
+        w = 1.0 / steps
+        fused = self._links.get(key)
+        if fused is None:
+            self._links[key] = _FusedLink(a, b, w, w * disp, w * mean_step, 1)
+            return self._links[key].estimate()
+        if fused.from_id != a:
+            disp = -disp
+        if np.hypot(*(disp - fused.sum_wd / fused.sum_w)) > self.params.link_fuse_gate_m:
+            return None
+        fused.sum_w += w
+        fused.sum_wd = fused.sum_wd + w * disp
+        fused.sum_wstep += w * mean_step
+        fused.traversals += 1
+        return fused.estimate()
