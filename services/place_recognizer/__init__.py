@@ -2,6 +2,7 @@
 
 from services.place_recognizer.core import (
     NO_PLACE,
+    LinkAccumulator,
     LinkEstimate,
     Localization,
     PlaceRecognizer,
@@ -10,6 +11,6 @@ from services.place_recognizer.core import (
 )
 
 __all__ = [
-    "NO_PLACE", "LinkEstimate", "Localization", "PlaceRecognizer", "PlaceRecognizerParams",
+    "NO_PLACE", "LinkAccumulator", "LinkEstimate", "Localization", "PlaceRecognizer", "PlaceRecognizerParams",
     "RecognizerOutput",
 ]

@@ -119,8 +119,20 @@ class _Signature:
 
 
 @dataclass
-class _FusedLink:
-    """Information-weighted sums over the traversals of one link, in its first direction."""
+class LinkAccumulator:
+    """The traversals of one link fused by the rule of :class:`PlaceRecognizer` (weights ``1 / T``).
+
+    Kept in the direction of the first traversal; :meth:`add` negates reverse traversals.
+
+    Examples
+    --------
+    >>> acc = LinkAccumulator.first(0, 1, np.array([1.0, 0.0]), steps=20, mean_step_m=0.05)
+    >>> acc.add(1, 0, np.array([-1.3, 0.0]), steps=10, mean_step_m=0.1, gate_m=1.0)
+    True
+    >>> e = acc.estimate()
+    >>> round(e.d_m, 3), e.steps, round(e.mean_step_m, 4), e.traversals
+    (1.2, 7, 0.0833, 2)
+    """
 
     from_id: int
     to_id: int
@@ -129,7 +141,29 @@ class _FusedLink:
     sum_wstep: float  # sum of mean_step_k / T_k
     traversals: int
 
+    @classmethod
+    def first(cls, from_id: int, to_id: int, disp: np.ndarray, *, steps: int, mean_step_m: float) -> LinkAccumulator:
+        """The link's first traversal: displacement ``disp`` from ``from_id`` to ``to_id``."""
+        w = 1.0 / steps
+        return cls(from_id, to_id, w, w * np.asarray(disp, dtype=float), w * mean_step_m, 1)
+
+    def add(self, from_id: int, to_id: int, disp: np.ndarray, *, steps: int, mean_step_m: float,
+            gate_m: float) -> bool:
+        """Fuse a later traversal; ``False`` (and nothing changes) when it is further than ``gate_m``."""
+        disp = np.asarray(disp, dtype=float)
+        if (from_id, to_id) != (self.from_id, self.to_id):
+            disp = -disp
+        if np.hypot(*(disp - self.sum_wd / self.sum_w)) > gate_m:
+            return False
+        w = 1.0 / steps
+        self.sum_w += w
+        self.sum_wd = self.sum_wd + w * disp
+        self.sum_wstep += w * mean_step_m
+        self.traversals += 1
+        return True
+
     def estimate(self) -> LinkEstimate:
+        """The fused measurement."""
         d = self.sum_wd / self.sum_w
         return LinkEstimate(
             from_id=self.from_id, to_id=self.to_id, d_m=float(np.hypot(*d)),
@@ -185,7 +219,8 @@ class PlaceRecognizer:
         self._inside: _Mark | None = None
         self._departure: _Mark | None = None
         self._pending: _Pending | None = None
-        self._links: dict[frozenset[int], _FusedLink] = {}
+        self._links: dict[frozenset[int], LinkAccumulator] = {}
+        self.rejected_traversals = 0  # traversals refused by the fusing gate
 
     # --- inputs -------------------------------------------------------------------------------
 
@@ -228,7 +263,8 @@ class PlaceRecognizer:
         links = self._track(dr)
         valid = scores[~np.isnan(scores)]
         diag = {"best_score": float(valid.max()) if valid.size else float("nan"),
-                "none_prob": self.belief.none_prob, "places": float(self.belief.ids.size)}
+                "none_prob": self.belief.none_prob, "places": float(self.belief.ids.size),
+                "rejected_traversals": float(self.rejected_traversals)}
         return RecognizerOutput(localization=self.localization(), links=links, diagnostics=diag)
 
     def add_place(self, place_id: int, x_m: float, y_m: float, dr: DeadReckonedPose) -> RecognizerOutput:
@@ -284,8 +320,8 @@ class PlaceRecognizer:
 
     def link(self, a: int, b: int) -> LinkEstimate | None:
         """The fused measurement of the link between two places, in its first direction."""
-        fused = self._links.get(frozenset((a, b)))
-        return None if fused is None else fused.estimate()
+        acc = self._links.get(frozenset((a, b)))
+        return None if acc is None else acc.estimate()
 
     def localization(self) -> Localization:
         """The current belief as published."""
@@ -418,17 +454,11 @@ class PlaceRecognizer:
 
     def _fuse(self, a: int, b: int, disp: np.ndarray, steps: int, mean_step: float) -> LinkEstimate | None:
         key = frozenset((a, b))
-        w = 1.0 / steps
-        fused = self._links.get(key)
-        if fused is None:
-            self._links[key] = _FusedLink(a, b, w, w * disp, w * mean_step, 1)
+        acc = self._links.get(key)
+        if acc is None:
+            self._links[key] = LinkAccumulator.first(a, b, disp, steps=steps, mean_step_m=mean_step)
             return self._links[key].estimate()
-        if fused.from_id != a:
-            disp = -disp
-        if np.hypot(*(disp - fused.sum_wd / fused.sum_w)) > self.params.link_fuse_gate_m:
+        if not acc.add(a, b, disp, steps=steps, mean_step_m=mean_step, gate_m=self.params.link_fuse_gate_m):
+            self.rejected_traversals += 1
             return None
-        fused.sum_w += w
-        fused.sum_wd = fused.sum_wd + w * disp
-        fused.sum_wstep += w * mean_step
-        fused.traversals += 1
-        return fused.estimate()
+        return acc.estimate()

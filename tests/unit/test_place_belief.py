@@ -1,0 +1,113 @@
+"""The belief over places: motion prior, match likelihood and the offset filter (Eqs. 22-23)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from services.place_recognizer import belief as B
+
+MOTION = dict(transition_std_m=0.1, transition_var_per_m_m2=0.02, place_radius_m=0.5,
+              uniform_transition=0.0, unknown_offset_var_m2=0.25)
+
+
+def _one_place(offset=(0.0, 0.0), var=(0.0, 0.0)):
+    b = B.add_place(B.Belief.empty(), 7, (2.0, 1.0), probability=1.0)
+    return B.Belief(ids=b.ids, centres=b.centres, probs=b.probs, offsets=np.array([offset], float),
+                    offset_vars=np.array([var], float), none_prob=0.0, none_xy=np.zeros(2), none_var_m2=0.0)
+
+
+def test_standing_still_at_a_place_keeps_the_mass():
+    b = B.predict(_one_place(), np.zeros(2), **MOTION)
+    # kernel 1 for the place, exp(-R^2 / (2 s^2)) = exp(-0.25 / 0.02) for "none"
+    k_none = math.exp(-0.25 / 0.02)
+    assert b.probs[0] == pytest.approx(1.0 / (1.0 + k_none))
+    assert b.none_prob == pytest.approx(k_none / (1.0 + k_none))
+    np.testing.assert_allclose(b.offsets[0], [0.0, 0.0], atol=1e-12)
+
+
+def test_moving_within_a_place_moves_the_offset_by_dead_reckoning():
+    b = B.predict(_one_place(offset=(0.1, 0.0), var=(0.01, 0.01)), np.array([0.2, 0.0]), **MOTION)
+    # r' = r + D (Eq. 22's prior), variance grows by q |D| = 0.004
+    np.testing.assert_allclose(b.offsets[0], [0.3, 0.0], atol=1e-9)
+    np.testing.assert_allclose(b.offset_vars[0], [0.014, 0.014], atol=1e-9)
+
+
+def test_moving_to_a_neighbour_carries_the_mass_and_offset():
+    b = B.add_place(B.Belief.empty(), 0, (0.0, 0.0), probability=1.0)
+    b = B.add_place(b, 1, (1.0, 0.0), probability=0.0)
+    b = B.Belief(ids=b.ids, centres=b.centres, probs=np.array([1.0, 0.0]), offsets=b.offsets,
+                 offset_vars=b.offset_vars, none_prob=0.0, none_xy=np.zeros(2), none_var_m2=0.0)
+    moved = B.predict(b, np.array([0.95, 0.0]), **MOTION)
+    s2 = 0.02 * 0.95 + 0.1**2  # kernel variance: q |D| + transition_std^2
+    k = [math.exp(-(0.95**2) / (2 * s2)), math.exp(-(0.05**2) / (2 * s2)), math.exp(-(0.5**2) / (2 * s2))]
+    assert moved.probs[1] == pytest.approx(k[1] / sum(k))
+    assert moved.probs[1] > 0.98
+    np.testing.assert_allclose(moved.offsets[1], [-0.05, 0.0], atol=1e-6)
+
+
+def test_far_from_every_place_the_mass_goes_to_none():
+    moved = B.predict(_one_place(), np.array([3.0, 0.0]), **MOTION)
+    assert moved.none_prob > 0.99
+    np.testing.assert_allclose(moved.none_xy, [5.0, 1.0])
+
+
+def test_correct_offset_filter_eqs_22_23():
+    b = _one_place(offset=(0.2, -0.1), var=(0.04, 0.01))
+    out = B.correct(b, np.array([0.95]), np.array([[0.5, -0.1]]), np.array([[0.04, 0.03]]),
+                    match_sharpness=40.0, new_place_match=0.9)
+    # x: r = 0.2 + 0.04/0.08 (0.5 - 0.2) = 0.35, 1/s^2 = 1/0.04 + 1/0.04 -> 0.02
+    # y: r = -0.1 (observation agrees), s^2 = 1/(1/0.01 + 1/0.03) = 0.0075
+    np.testing.assert_allclose(out.offsets[0], [0.35, -0.1])
+    np.testing.assert_allclose(out.offset_vars[0], [0.02, 0.0075])
+
+
+def test_likelihood_ratio_from_match_scores():
+    b = B.add_place(B.Belief.empty(), 0, (0.0, 0.0), probability=0.5)
+    b = B.add_place(b, 1, (5.0, 0.0), probability=0.5)
+    b = B.Belief(ids=b.ids, centres=b.centres, probs=np.array([0.4, 0.4]), offsets=b.offsets,
+                 offset_vars=b.offset_vars, none_prob=0.2, none_xy=np.zeros(2), none_var_m2=0.0)
+    out = B.correct(b, np.array([1.0, 0.9]), np.zeros((2, 2)), np.ones((2, 2)),
+                    match_sharpness=40.0, new_place_match=0.95)
+    assert out.probs[0] / out.probs[1] == pytest.approx(math.exp(4.0))
+    # none: prior 0.2 (half of a place's), virtual score 0.95
+    assert out.none_prob / out.probs[0] == pytest.approx(0.5 * math.exp(-2.0))
+    # a place without a signature (NaN) gets the none likelihood
+    out2 = B.correct(b, np.array([np.nan, 0.9]), np.zeros((2, 2)), np.ones((2, 2)),
+                     match_sharpness=40.0, new_place_match=0.95)
+    assert out2.probs[0] / out2.none_prob == pytest.approx(2.0)
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    xs=st.lists(st.floats(-5, 5), min_size=1, max_size=6),
+    dx=st.floats(-2, 2), dy=st.floats(-2, 2),
+    eps=st.floats(0.0, 0.1),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_predict_and_correct_keep_a_distribution(xs, dx, dy, eps, seed):
+    rng = np.random.default_rng(seed)
+    b = B.Belief.empty()
+    for i, x in enumerate(xs):
+        b = B.add_place(b, i, (x, rng.uniform(-5, 5)), probability=float(rng.uniform(0.1, 0.9)))
+    b = B.predict(b, np.array([dx, dy]), **{**MOTION, "uniform_transition": eps})
+    assert b.probs.sum() + b.none_prob == pytest.approx(1.0)
+    assert (b.offset_vars >= 0).all()
+    b = B.correct(b, rng.uniform(0, 1, len(xs)), rng.normal(size=(len(xs), 2)), np.full((len(xs), 2), 0.1),
+                  match_sharpness=40.0, new_place_match=0.9)
+    assert b.probs.sum() + b.none_prob == pytest.approx(1.0)
+    assert (b.probs >= 0).all() and b.none_prob >= 0
+
+
+def test_remove_and_move_places():
+    b = B.add_place(B.Belief.empty(), 0, (0.0, 0.0), probability=0.5)
+    b = B.add_place(b, 1, (1.0, 0.0), probability=0.5)  # probs 0.25, 0.5, none 0.25
+    r = B.remove_place(b, 1)
+    assert r.ids.tolist() == [0]
+    assert r.probs[0] == pytest.approx(0.5) and r.none_prob == pytest.approx(0.5)
+    m = B.move_places(b, {1: (3.0, 4.0)})
+    np.testing.assert_allclose(m.centres, [[0.0, 0.0], [3.0, 4.0]])

@@ -1,0 +1,139 @@
+"""The place recognizer core driven through a corridor: places, recognition, links and their fusion."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from messages.types import DeadReckonedPose, Pose2
+from services.place_recognizer import NO_PLACE, LinkAccumulator, PlaceRecognizer, PlaceRecognizerParams
+from tests.unit._sonar_rooms import box, scan_at
+
+# a 8 m x 3 m hall cut by two partial walls, so that every metre looks a little different
+WALLS = box(0, 0, 8, 3) + [(3, 0, 3, 1.0), (3, 2.0, 3, 3), (5.5, 0, 5.5, 2.2)]
+STEP_M = 0.05  # odometry step length
+
+
+class _Drive:
+    """Perfect dead reckoning along a polyline, one sonar scan every 0.1 m."""
+
+    def __init__(self, rec: PlaceRecognizer):
+        self.rec, self.steps, self.path, self.prev = rec, 0, 0.0, None
+        self.places: dict[int, tuple[float, float]] = {}
+        self.links = []
+        self.at: list[int] = []
+
+    def dr(self, x, y) -> DeadReckonedPose:
+        if self.prev is not None:
+            d = float(np.hypot(x - self.prev[0], y - self.prev[1]))
+            self.path += d
+            self.steps += int(round(d / STEP_M))
+        self.prev = (x, y)
+        pose = Pose2(x_m=x, y_m=y, heading_rad=0.0)
+        return DeadReckonedPose(stamp=0.0, seq=0, compass=pose, raw=pose, steps=self.steps, path_length_m=self.path)
+
+    def visit(self, x, y, *, confirm_new: bool) -> None:
+        dr = self.dr(x, y)
+        out = self.rec.step(dr, scan_at(x, y, 0.0, WALLS)[0])
+        self.links += out.links
+        self.at.append(out.localization.place_id)
+        if confirm_new and out.localization.place_id == NO_PLACE and all(
+            np.hypot(x - px, y - py) > 0.95 for px, py in self.places.values()
+        ):
+            pid = len(self.places)
+            self.places[pid] = (x, y)
+            added = self.rec.add_place(pid, x, y, dr)
+            self.links += added.links
+            self.at.append(added.localization.place_id)
+
+
+@pytest.fixture(scope="module")
+def drive():
+    d = _Drive(PlaceRecognizer())
+    for k in range(51):  # east along the hall, places confirmed every metre
+        d.visit(1.5 + 0.1 * k, 1.5, confirm_new=True)
+    d.first_pass_links = list(d.links)
+    d.first_pass_at = list(d.at)
+    d.links.clear()
+    d.at.clear()
+    for k in range(1, 51):  # and back west: only recognition
+        d.visit(6.5 - 0.1 * k, 1.5, confirm_new=False)
+    return d
+
+
+def test_places_are_confirmed_every_metre(drive):
+    assert drive.places == {i: pytest.approx((1.5 + i, 1.5)) for i in range(6)}
+
+
+def test_first_traversal_links_match_the_true_displacement(drive):
+    links = drive.first_pass_links
+    assert [(link.from_id, link.to_id) for link in links] == [(i, i + 1) for i in range(5)]
+    for link in links:
+        assert link.d_m == pytest.approx(1.0, abs=0.03)
+        assert link.theta_rad == pytest.approx(0.0, abs=0.03)
+        assert link.traversals == 1
+        assert link.mean_step_m == pytest.approx(STEP_M)
+        assert link.steps == 20  # the 1 m centre to centre in 5 cm steps
+
+
+def test_known_places_are_recognised_on_the_way_back(drive):
+    seen = [p for i, p in enumerate(drive.at) if p != NO_PLACE and (i == 0 or drive.at[i - 1] != p)]
+    assert seen == [5, 4, 3, 2, 1, 0]
+
+
+def test_later_traversals_are_fused(drive):
+    back = drive.links
+    assert sorted((link.from_id, link.to_id) for link in back) == [(i, i + 1) for i in range(5)]
+    for link in back:
+        assert link.traversals == 2
+        assert link.d_m == pytest.approx(1.0, abs=0.05)
+        assert link.theta_rad == pytest.approx(0.0, abs=0.05)
+        assert link.steps == 10  # two traversals of T = 20 each: 1 / (1/20 + 1/20)
+    assert drive.rec.link(3, 2) == drive.rec.link(2, 3)
+
+
+def test_place_signature_is_stored_on_confirmation(drive):
+    sig = drive.rec.signature(0)
+    n = sig.x.shape[1]
+    assert sig.x.shape == (3, n) and sig.y.shape == (3, n)
+    assert (sig.x.sum(axis=0) == n).all()  # every column counts all its cells
+    assert sig.x[0].sum() > 0 and sig.x[1].sum() > 0  # walls and free space seen
+
+
+def test_link_accumulator_weights_by_inverse_steps():
+    acc = LinkAccumulator.first(4, 9, np.array([0.0, 2.0]), steps=40, mean_step_m=0.05)
+    # a reverse traversal: negated, weight 1/10 against 1/40
+    assert acc.add(9, 4, np.array([0.0, -1.5]), steps=10, mean_step_m=0.15, gate_m=1.0)
+    e = acc.estimate()
+    # D = (2.0/40 + 1.5/10) / (1/40 + 1/10) = 0.2 / 0.125 = 1.6; T = 1 / 0.125 = 8
+    assert (e.from_id, e.to_id, e.traversals, e.steps) == (4, 9, 2, 8)
+    assert e.d_m == pytest.approx(1.6)
+    assert e.theta_rad == pytest.approx(np.pi / 2)
+    assert e.mean_step_m == pytest.approx((0.05 / 40 + 0.15 / 10) / 0.125)
+    # further than the gate from the fused 1.6 m: rejected, nothing changes
+    assert not acc.add(4, 9, np.array([0.0, 3.0]), steps=10, mean_step_m=0.1, gate_m=1.0)
+    assert acc.estimate() == e
+
+
+def test_remove_place_forgets_it():
+    d = _Drive(PlaceRecognizer(PlaceRecognizerParams()))
+    for k in range(21):
+        d.visit(1.5 + 0.1 * k, 1.5, confirm_new=True)
+    assert set(d.places) == {0, 1, 2}
+    assert d.rec.link(0, 1) is not None
+    d.rec.remove_place(1)
+    assert d.rec.link(0, 1) is None and d.rec.link(1, 2) is None
+    assert 1 not in d.rec.belief.ids.tolist()
+    assert d.rec.belief.probs.sum() + d.rec.belief.none_prob == pytest.approx(1.0)
+
+
+def test_move_places_keeps_offsets():
+    d = _Drive(PlaceRecognizer())
+    for k in range(4):
+        d.visit(1.5 + 0.1 * k, 1.5, confirm_new=True)
+    before = d.rec.localization()
+    d.rec.move_places({0: (10.0, -3.0)})
+    after = d.rec.localization()
+    assert after.place_id == before.place_id == 0
+    assert (after.offset_x_m, after.offset_y_m) == (before.offset_x_m, before.offset_y_m)
+    np.testing.assert_allclose(d.rec.belief.centres[0], [10.0, -3.0])
