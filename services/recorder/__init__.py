@@ -1,0 +1,1 @@
+"""Recorder: a Rerun recording of every map update, the robot, its sensors and the relaxer's progress."""

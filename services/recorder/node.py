@@ -1,0 +1,407 @@
+"""Recorder node: bus messages in, Rerun archetypes out, on the simulated-time timeline."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+import zenoh
+
+from messages import topics
+from messages.types import (
+    DeadReckonedPose,
+    ExplorationStatus,
+    LinkDeleted,
+    LinkInferred,
+    LinkMeasured,
+    LocalizationBelief,
+    MapUpdate,
+    OccupancyGrid,
+    PlaceConfirmed,
+    PlaceDeleted,
+    PlacePredicted,
+    SonarScan,
+    TruthPose,
+)
+from services.recorder.core import POSE_SOURCES, STYLE, RecorderParams, RecorderState, grid_image
+from services.runtime import Node, query
+
+log = logging.getLogger("relaxmap.recorder")
+
+APPLICATION_ID = "relaxmap"
+SIM_TIME = "sim_time"  # timeline of simulated seconds (each message's stamp)
+MAP_VERSION = "map_version"  # timeline of map versions (MapUpdate.version), set from the first update on
+FLUSH_TIMEOUT_S = 10.0  # longest wait for the stream to reach the file when closing
+
+# Entity paths. Everything spatial lives under MAP, in metres, world frame.
+MAP = "map"
+GRID = "map/grid"
+CONFIRMED = "map/places/confirmed"
+PREDICTED = "map/places/predicted"
+TRAVERSED = "map/links/traversed"
+INFERRED = "map/links/inferred"
+SONAR_RAYS = "map/sonar/rays"
+SONAR_ECHOES = "map/sonar/echoes"
+BELIEF_ESTIMATE = "map/belief/estimate"
+BELIEF_HYPOTHESES = "map/belief/hypotheses"
+ENERGY = "plots/energy"
+ITERATIONS = "plots/iterations"
+MAP_PLACES = "plots/map_size/places"
+MAP_LINKS = "plots/map_size/links"
+EXPLORED_CONFIRMED = "plots/exploration/confirmed"
+EXPLORED_PREDICTED = "plots/exploration/predicted"
+BELIEF_PROBABILITY = "plots/belief/probability"
+EVENTS = "events"
+
+
+def pose_path(source: str) -> str:
+    """Arrow of a pose source ("truth", "compass", "raw")."""
+    return f"map/robot/{source}/pose"
+
+
+def trail_path(source: str) -> str:
+    return f"map/robot/{source}/trail"
+
+
+def _ui(pt: float) -> float:
+    return rr.Radius.ui_points(pt)
+
+
+def blueprint() -> rrb.Blueprint:
+    """The default layout: the map on the left; the grid, energy, iterations and the rest on the right."""
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial2DView(name="Map", origin="/", contents=["/map/**"]),
+            rrb.Vertical(
+                rrb.Spatial2DView(name="Occupancy grid", origin="/",
+                                  contents=[f"/{GRID}", f"/{CONFIRMED}", f"/{pose_path('truth')}",
+                                            f"/{trail_path('truth')}", "/map/sonar/**"]),
+                rrb.TimeSeriesView(name="Energy", origin=f"/{ENERGY}"),
+                rrb.TimeSeriesView(name="Iterations", origin=f"/{ITERATIONS}"),
+                rrb.Tabs(
+                    rrb.TimeSeriesView(name="Exploration", origin="/plots/exploration"),
+                    rrb.TimeSeriesView(name="Map size", origin="/plots/map_size"),
+                    rrb.TimeSeriesView(name="Localization", origin="/plots/belief"),
+                    rrb.TextLogView(name="Events", origin=f"/{EVENTS}"),
+                ),
+                row_shares=[3, 2, 2, 2],
+            ),
+            column_shares=[3, 2],
+        ),
+        rrb.TimePanel(timeline=SIM_TIME),
+        collapse_panels=False,
+    )
+
+
+def open_recording(rrd_path: Path, *, viewer: bool = False, viewer_port: int = 9876,
+                   recording_id: str | None = None) -> rr.RecordingStream:
+    """A stream to ``rrd_path`` (parents created) and, with ``viewer``, to a spawned viewer as well.
+
+    A viewer that cannot be started is logged and left out; the file is written either way.
+    """
+    rrd_path.parent.mkdir(parents=True, exist_ok=True)
+    rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
+    sinks: list = [rr.FileSink(str(rrd_path))]
+    if viewer:
+        exe = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
+        try:
+            rr.spawn(port=viewer_port, connect=False, executable_path=exe, recording=rec)
+            sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{viewer_port}/proxy"))
+        except Exception as e:  # no display, no binary: the file still gets everything
+            log.warning("recorder: no viewer (%s); writing %s only", e, rrd_path)
+    rec.set_sinks(*sinks)
+    rec.send_blueprint(blueprint(), make_active=True, make_default=True)
+    return rec
+
+
+def close_recording(rec: rr.RecordingStream) -> None:
+    """Flush and close every sink, so the file ends with its footer (and stays valid)."""
+    try:
+        rec.flush(timeout_sec=FLUSH_TIMEOUT_S)
+    except Exception:
+        log.exception("recorder: flushing the recording failed")
+    rec.disconnect()
+
+
+class Recorder:
+    """Turns bus messages into Rerun logs; every callback runs in the node's event loop."""
+
+    def __init__(self, node: Node, rec: rr.RecordingStream, params: RecorderParams, *,
+                 stop: threading.Event, max_sim_time_s: float | None = None) -> None:
+        self.node = node
+        self.rec = rec
+        self.params = params
+        self.state = RecorderState(params=params)
+        self.stop = stop
+        self.max_sim_time_s = max_sim_time_s
+        self.complete = False
+        self._grid_thread: threading.Thread | None = None
+        # Every key is present from the start: health copies this dict from another thread.
+        node.detail.update({"map_updates": 0, "map_version": -1, "grid_queries": 0, "grid_failures": 0,
+                            "grids_logged": 0, "grid_skipped": 0, "places": 0, "predicted": 0,
+                            "links_traversed": 0, "links_inferred": 0, "sonar_scans": 0})
+        self._log_static()
+
+    # -- helpers ------------------------------------------------------------------------------------
+    def _log_static(self) -> None:
+        rec = self.rec
+        # 2-D views draw +y downwards; this flip shows the map with +y up. Data below stay in metres.
+        rec.log(MAP, rr.Transform3D(scale=[1.0, -1.0, 1.0]), static=True)
+        rec.log(ENERGY, rr.SeriesLines(names="energy (Eq. 7)", colors=[STYLE.confirmed_color]), static=True)
+        rec.log(ITERATIONS, rr.SeriesLines(names="iterations per cycle", colors=[STYLE.pose_color("compass")]),
+                static=True)
+        rec.log(MAP_PLACES, rr.SeriesLines(names="places", colors=[STYLE.confirmed_color]), static=True)
+        rec.log(MAP_LINKS, rr.SeriesLines(names="links", colors=[STYLE.traversed_color]), static=True)
+        rec.log(EXPLORED_CONFIRMED, rr.SeriesLines(names="confirmed", colors=[STYLE.confirmed_color]), static=True)
+        rec.log(EXPLORED_PREDICTED, rr.SeriesLines(names="predicted", colors=[STYLE.predicted_color]), static=True)
+        rec.log(BELIEF_PROBABILITY, rr.SeriesLines(names="P(best place)", colors=[STYLE.belief_color]), static=True)
+
+    def _at(self, stamp: float) -> bool:
+        """Set the simulated time; False (and stop) for a message beyond --max-sim-time."""
+        if self.max_sim_time_s is not None and stamp > self.max_sim_time_s:
+            if not self.stop.is_set():
+                log.info("recorder: simulated time %.3f s is beyond %.3f s: stopping", stamp, self.max_sim_time_s)
+                self.stop.set()
+            return False
+        self.rec.set_time(SIM_TIME, duration=stamp)
+        return True
+
+    def _event(self, text: str, level: rr.TextLogLevel = rr.TextLogLevel.INFO) -> None:
+        self.rec.log(EVENTS, rr.TextLog(text, level=level))
+
+    def _log_map(self) -> None:
+        """The places and the links, whole, at the current time."""
+        st, rec = self.state, self.rec
+        places = st.places()
+        rec.log(CONFIRMED, rr.Points2D(places.confirmed_xy, labels=[str(i) for i in places.confirmed_ids],
+                                       colors=[STYLE.confirmed_color], radii=_ui(STYLE.confirmed_radius_pt),
+                                       show_labels=True, draw_order=[30.0]))
+        rec.log(PREDICTED, rr.Points2D(places.predicted_xy, labels=[str(i) for i in places.predicted_ids],
+                                       colors=[STYLE.predicted_color], radii=_ui(STYLE.predicted_radius_pt),
+                                       show_labels=True, draw_order=[29.0]))
+        links = st.links()
+        rec.log(TRAVERSED, rr.LineStrips2D(links.traversed, colors=[STYLE.traversed_color],
+                                           radii=_ui(STYLE.traversed_width_pt / 2), draw_order=20.0))
+        rec.log(INFERRED, rr.LineStrips2D(links.inferred, colors=[STYLE.inferred_color],
+                                          radii=_ui(STYLE.inferred_width_pt / 2), draw_order=19.0))
+        d = self.node.detail
+        d["places"], d["predicted"] = len(places.confirmed_ids), len(places.predicted_ids)
+        d["links_traversed"], d["links_inferred"] = len(st.traversed), len(st.inferred)
+
+    # -- places and links ---------------------------------------------------------------------------
+    def on_place_confirmed(self, msg: PlaceConfirmed) -> None:
+        if self._at(msg.stamp):
+            self.state.place_confirmed(msg)
+            self._log_map()
+            self._event(f"place {msg.place_id} confirmed at ({msg.x_m:.2f}, {msg.y_m:.2f})")
+
+    def on_place_predicted(self, msg: PlacePredicted) -> None:
+        if self._at(msg.stamp):
+            self.state.place_predicted(msg)
+            self._log_map()
+
+    def on_place_deleted(self, msg: PlaceDeleted) -> None:
+        if self._at(msg.stamp):
+            self.state.place_deleted(msg)
+            self._log_map()
+            self._event(f"place {msg.place_id} deleted: {msg.reason}", rr.TextLogLevel.WARN)
+
+    def on_link_measured(self, msg: LinkMeasured) -> None:
+        if self._at(msg.stamp):
+            self.state.link_measured(msg)
+            self._log_map()
+            self._event(f"link {msg.from_id}-{msg.to_id} measured: d={msg.d_m:.2f} m, "
+                        f"theta={np.degrees(msg.theta_rad):.1f} deg, {msg.traversals} traversal(s)")
+
+    def on_link_inferred(self, msg: LinkInferred) -> None:
+        if self._at(msg.stamp):
+            self.state.link_inferred(msg)
+            self._log_map()
+
+    def on_link_deleted(self, msg: LinkDeleted) -> None:
+        if self._at(msg.stamp):
+            self.state.link_deleted(msg)
+            self._log_map()
+            self._event(f"link {msg.from_id}-{msg.to_id} deleted: {msg.reason}", rr.TextLogLevel.WARN)
+
+    def on_map_update(self, msg: MapUpdate) -> None:
+        if not self._at(msg.stamp):
+            return
+        self.rec.set_time(MAP_VERSION, sequence=msg.version)
+        self.state.map_update(msg)
+        self._log_map()
+        rec = self.rec
+        rec.log(ENERGY, rr.Scalars(msg.energy))
+        rec.log(ITERATIONS, rr.Scalars(float(msg.iterations)))
+        rec.log(MAP_PLACES, rr.Scalars(float(msg.places)))
+        rec.log(MAP_LINKS, rr.Scalars(float(msg.links)))
+        self.node.detail["map_updates"] += 1
+        self.node.detail["map_version"] = self.state.version
+        if self.state.grid_due(msg.version, msg.stamp):
+            self._ask_grid(msg.stamp)
+
+    # -- robot --------------------------------------------------------------------------------------
+    def _pose(self, source: str, stamp: float) -> None:
+        st, rec = self.state, self.rec
+        if st.live_due(source, stamp):
+            origin, vector = st.arrow(source)
+            rec.log(pose_path(source), rr.Arrows2D(origins=[origin], vectors=[vector],
+                                                   colors=[STYLE.pose_color(source)],
+                                                   radii=_ui(STYLE.pose_width_pt / 2), draw_order=40.0))
+        if st.trail_due(source, stamp):
+            rec.log(trail_path(source), rr.LineStrips2D([st.trail(source)], colors=[STYLE.pose_color(source)],
+                                                        radii=_ui(STYLE.trail_width_pt / 2), draw_order=35.0))
+
+    def on_truth(self, msg: TruthPose) -> None:
+        if self._at(msg.stamp):
+            self.state.pose("truth", msg.pose)
+            self._pose("truth", msg.stamp)
+
+    def on_dead_reckoning(self, msg: DeadReckonedPose) -> None:
+        if self._at(msg.stamp):
+            for source, pose in (("compass", msg.compass), ("raw", msg.raw)):
+                self.state.pose(source, pose)
+                self._pose(source, msg.stamp)
+
+    def on_sonar(self, msg: SonarScan) -> None:
+        if not self._at(msg.stamp):
+            return
+        self.node.detail["sonar_scans"] += 1
+        if not self.state.live_due("sonar", msg.stamp):
+            return
+        rays = self.state.sonar_rays(msg)
+        if rays is None:
+            return
+        colors = np.where(rays.echo[:, None], STYLE.echo_color, STYLE.no_echo_color).astype(np.uint8)
+        self.rec.log(SONAR_RAYS, rr.LineStrips2D(rays.segments, colors=colors, radii=_ui(STYLE.ray_width_pt / 2),
+                                                 draw_order=25.0))
+        self.rec.log(SONAR_ECHOES, rr.Points2D(rays.ends[rays.echo], colors=[STYLE.echo_color],
+                                               radii=_ui(STYLE.echo_radius_pt), draw_order=26.0))
+
+    def on_belief(self, msg: LocalizationBelief) -> None:
+        if not self._at(msg.stamp) or not self.state.live_due("belief", msg.stamp):
+            return
+        view = self.state.belief(msg)
+        rec = self.rec
+        rec.log(BELIEF_PROBABILITY, rr.Scalars(view.probability))
+        if view.estimate_xy is None:
+            rec.log(BELIEF_ESTIMATE, rr.Ellipses2D(centers=np.zeros((0, 2)), half_sizes=np.zeros((0, 2))))
+        else:
+            rec.log(BELIEF_ESTIMATE, rr.Ellipses2D(
+                centers=[view.estimate_xy], half_sizes=[[max(view.sigma_m, 0.02)] * 2],
+                labels=[f"{view.place_id} p={view.probability:.2f}"], colors=[STYLE.belief_color],
+                line_radii=_ui(1.0), draw_order=[45.0]))
+        radii = [_ui(STYLE.belief_radius_pt * float(np.sqrt(p))) for p in view.hypothesis_p]
+        rec.log(BELIEF_HYPOTHESES, rr.Points2D(view.hypothesis_xy, radii=radii,
+                                               colors=[(*STYLE.belief_color[:3], 90)],
+                                               labels=[f"p={p:.2f}" for p in view.hypothesis_p], draw_order=[28.0]))
+
+    def on_status(self, msg: ExplorationStatus) -> None:
+        if not self._at(msg.stamp):
+            return
+        self.rec.log(EXPLORED_CONFIRMED, rr.Scalars(float(msg.confirmed)))
+        self.rec.log(EXPLORED_PREDICTED, rr.Scalars(float(msg.predicted)))
+        if msg.complete and not self.complete:
+            self._event(f"exploration complete: {msg.confirmed} places confirmed")
+        self.complete = msg.complete
+
+    # -- the occupancy grid -------------------------------------------------------------------------
+    def _ask_grid(self, stamp: float) -> None:
+        """Ask map/grid in a worker thread; the reply is logged from the event loop."""
+        if self._grid_thread is not None and self._grid_thread.is_alive():
+            self.node.detail["grid_skipped"] += 1
+            return
+        self.node.detail["grid_queries"] += 1
+        p = self.params
+        params = {"resolution": f"{p.grid_resolution_m:g}"} if p.grid_resolution_m > 0 else None
+        key = topics.map_grid(self.node.robot)
+        session, call_soon = self.node.session, self.node.call_soon
+
+        def ask() -> None:
+            try:
+                grid = query(session, key, params, type_=OccupancyGrid, timeout_s=p.grid_timeout_s)
+            except Exception as e:  # no relaxer, an error reply, a closing session: counted, not fatal
+                call_soon(self._on_grid_failed, e)
+                return
+            call_soon(self._on_grid, grid, stamp)
+
+        self._grid_thread = threading.Thread(target=ask, name="recorder-grid", daemon=True)
+        self._grid_thread.start()
+
+    def _on_grid_failed(self, error: Exception) -> None:
+        self.node.detail["grid_failures"] += 1
+        log.debug("recorder: no occupancy grid: %s", error)
+
+    def _on_grid(self, grid: OccupancyGrid, stamp: float) -> None:
+        try:
+            image = grid_image(grid)
+        except ValueError as e:
+            self._on_grid_failed(e)
+            return
+        if self._at(stamp):
+            self.rec.set_time(MAP_VERSION, sequence=grid.version)
+            # Row r, column c of the image covers x = ox + c res, y = oy + r res (the grid's own layout).
+            self.rec.log(GRID, rr.Transform3D(translation=[*image.origin_xy, 0.0],
+                                              scale=[image.resolution_m, image.resolution_m, 1.0]))
+            self.rec.log(GRID, rr.Image(image.grey, color_model="L", draw_order=-10.0))
+            self.node.detail["grids_logged"] += 1
+
+    def close(self, timeout_s: float = 0.5) -> None:
+        """Give a grid query in flight a moment to end (it ends by its own timeout anyway)."""
+        if self._grid_thread is not None:
+            self._grid_thread.join(timeout_s)
+
+
+def subscribe_all(node: Node, recorder: Recorder, robot: str) -> None:
+    """Every topic the recorder draws, to its callback."""
+    node.subscribe(topics.truth_pose(robot), TruthPose, recorder.on_truth)
+    node.subscribe(topics.dr_pose(robot), DeadReckonedPose, recorder.on_dead_reckoning)
+    node.subscribe(topics.sonar(robot), SonarScan, recorder.on_sonar)
+    node.subscribe(topics.localization(robot), LocalizationBelief, recorder.on_belief)
+    node.subscribe(topics.places_confirmed(robot), PlaceConfirmed, recorder.on_place_confirmed)
+    node.subscribe(topics.places_predicted(robot), PlacePredicted, recorder.on_place_predicted)
+    node.subscribe(topics.places_deleted(robot), PlaceDeleted, recorder.on_place_deleted)
+    node.subscribe(topics.links_measured(robot), LinkMeasured, recorder.on_link_measured)
+    node.subscribe(topics.links_inferred(robot), LinkInferred, recorder.on_link_inferred)
+    node.subscribe(topics.links_deleted(robot), LinkDeleted, recorder.on_link_deleted)
+    node.subscribe(topics.map_update(robot), MapUpdate, recorder.on_map_update)
+    node.subscribe(topics.exploration_status(robot), ExplorationStatus, recorder.on_status)
+
+
+def run(session: zenoh.Session, params: RecorderParams, *, rrd_path: Path, robot: str = topics.DEFAULT_ROBOT,
+        stop: threading.Event | None = None, viewer: bool = False, viewer_port: int = 9876,
+        recording_id: str | None = None, duration_s: float | None = None,
+        max_sim_time_s: float | None = None) -> None:
+    """Record until ``stop`` is set (or ``duration_s`` wall seconds, or ``max_sim_time_s``).
+
+    The recording is flushed and closed on every way out, exceptions included, so that the file
+    always ends with its footer.
+    """
+    stop = stop if stop is not None else threading.Event()
+    deadline = None if duration_s is None else time.monotonic() + duration_s
+
+    def tick() -> None:
+        if deadline is not None and time.monotonic() >= deadline:
+            log.info("recorder: --duration-s reached: stopping")
+            stop.set()
+
+    rec = open_recording(rrd_path, viewer=viewer, viewer_port=viewer_port, recording_id=recording_id)
+    recorder = None
+    try:
+        with Node(session, "recorder", robot=robot) as node:
+            recorder = Recorder(node, rec, params, stop=stop, max_sim_time_s=max_sim_time_s)
+            subscribe_all(node, recorder, robot)
+            log.info("recorder: writing %s", rrd_path)
+            node.spin(stop, tick=tick, period_s=0.1)
+    finally:
+        close_recording(rec)
+        if recorder is not None:
+            recorder.close()
+        log.info("recorder: %s closed", rrd_path)
