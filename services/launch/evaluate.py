@@ -1,0 +1,34 @@
+"""How good a map is: error of place coordinates against ground truth (pure)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+
+def ate_m(estimate: Mapping[int, tuple[float, float]], truth: Mapping[int, tuple[float, float]],
+          first_id: int) -> float:
+    """RMS position error of the places in both maps, after removing the translation of ``first_id``.
+
+    Both maps are shifted so that place ``first_id`` is at its true position (its own error is then
+    zero); no rotation is removed: with a compass, both frames share north.
+
+    Returns
+    -------
+    float
+        The RMS error in metres; NaN when no place is in both maps or ``first_id`` is in neither.
+
+    Examples
+    --------
+    >>> ate_m({0: (1.0, 1.0), 1: (2.0, 1.0)}, {0: (0.0, 0.0), 1: (1.0, 1.0)}, 0)
+    0.7071067811865476
+    """
+    ids = sorted(set(estimate) & set(truth))
+    if not ids or first_id not in estimate or first_id not in truth:
+        return float("nan")
+    est = np.array([estimate[i] for i in ids], dtype=float)
+    tru = np.array([truth[i] for i in ids], dtype=float)
+    shift = np.asarray(truth[first_id], dtype=float) - np.asarray(estimate[first_id], dtype=float)
+    err = est + shift - tru
+    return float(np.sqrt(np.mean(np.sum(err**2, axis=1))))

@@ -1,0 +1,34 @@
+"""``relaxmap run``: start every service of the process graph, watch the run, write its outputs."""
+
+from __future__ import annotations
+
+import argparse
+
+DEFAULT_GRAPH = "graph.json"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--world", default="orebro-office", help="built-in world name or a world file")
+    parser.add_argument("--seed", type=int, default=0, help="seed of every random generator of the run")
+    parser.add_argument("--out", default="relaxmap-out", help="output directory")
+    parser.add_argument("--viewer", action="store_true", help="spawn the Rerun viewer as well")
+    parser.add_argument("--headless", action="store_true", help="no progress bar (log lines instead)")
+    parser.add_argument("--max-sim-time", type=float, default=3600.0, metavar="S",
+                        help="stop after this many simulated seconds if exploration has not ended")
+    parser.add_argument("--graph", help="process graph file (default: deploy/graph.json)")
+    parser.add_argument("--port", type=int, default=7447,
+                        help="loopback port of the run's hub (0: any free port)")
+    parser.add_argument("--start-timeout-s", type=float, default=60.0,
+                        help="how long the services may take to come alive")
+
+
+def main(args: argparse.Namespace) -> int:
+    from services.launch.runner import RunError, run
+
+    try:
+        return run(args)
+    except RunError as e:
+        import sys
+
+        print(f"relaxmap run: {e}", file=sys.stderr)
+        return 1

@@ -1,0 +1,143 @@
+"""The relaxer on the bus: places and links in, one relaxation cycle per update, map updates out."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from pathlib import Path
+
+import msgspec
+import zenoh
+
+from messages import topics
+from messages.types import (
+    DeadReckonedPose,
+    LinkDeleted,
+    LinkMeasured,
+    LocalizationBelief,
+    MapUpdate,
+    PlaceConfirmed,
+    PlaceDeleted,
+    SonarScan,
+)
+from services.relaxer.online import CycleOutcome, OnlineMap, OnlineParams, UnknownPlace
+from services.relaxer.store import MapStore, StoredScan
+from services.runtime import Node, QueryError, QueryParams
+
+log = logging.getLogger("relaxmap.relaxer")
+
+
+class RelaxerParams(msgspec.Struct, frozen=True, kw_only=True):
+    """Parameters of the relaxer node."""
+
+    store_path: str = "relaxmap-map.sqlite"  # the SQLite file of the map (created if missing)
+    min_belief_for_scan: float = 0.5  # a sonar scan is kept for the grid when localised this surely
+    max_grid_cells: int = 4_000_000  # a grid query that would need more cells is refused
+    online: OnlineParams = OnlineParams()
+
+
+def run(session: zenoh.Session, params: RelaxerParams, *, robot: str = topics.DEFAULT_ROBOT,
+        stop: threading.Event) -> None:
+    store = MapStore(Path(params.store_path))
+    stored = store.load()
+    core = OnlineMap(params.online, stored)
+    core.scans = store.scans()
+    if stored.places:
+        log.info("resumed %d places, %d links, version %d from %s", len(stored.places), len(stored.links),
+                 stored.version, params.store_path)
+    latest: dict[str, object] = {}
+    with Node(session, "relaxer", robot=robot) as node:
+        pub = node.publisher(topics.map_update(robot), MapUpdate)
+
+        def apply(outcome: CycleOutcome, t0: float) -> None:
+            store.commit(outcome.tx)
+            if outcome.update is not None:
+                pub.put(outcome.update)
+                core.cycle_ms.append((time.perf_counter() - t0) * 1e3)
+            node.detail.update(places=core.relaxer.graph.n_places, links=len(core.links), version=core.version,
+                               pending_links=len(core._pending), scans=len(core.scans))
+
+        def on_confirmed(msg: PlaceConfirmed) -> None:
+            t0 = time.perf_counter()
+            apply(core.on_place_confirmed(msg), t0)
+
+        def on_measured(msg: LinkMeasured) -> None:
+            t0 = time.perf_counter()
+            apply(core.on_link_measured(msg), t0)
+
+        def on_place_deleted(msg: PlaceDeleted) -> None:
+            t0 = time.perf_counter()
+            apply(core.on_place_deleted(msg.place_id, msg.stamp), t0)
+
+        def on_link_deleted(msg: LinkDeleted) -> None:
+            t0 = time.perf_counter()
+            apply(core.on_link_deleted(msg.from_id, msg.to_id, msg.stamp), t0)
+
+        def on_belief(msg: LocalizationBelief) -> None:
+            latest["belief"] = msg
+
+        def on_dr(msg: DeadReckonedPose) -> None:
+            latest["dr"] = msg
+
+        def on_sonar(msg: SonarScan) -> None:
+            belief, dr = latest.get("belief"), latest.get("dr")
+            if not isinstance(belief, LocalizationBelief) or not isinstance(dr, DeadReckonedPose):
+                return
+            if belief.place_id < 0 or belief.probability < params.min_belief_for_scan:
+                return
+            pose = dr.compass
+            scan = StoredScan(msg.stamp, belief.place_id, belief.offset_x_m, belief.offset_y_m, pose.x_m, pose.y_m,
+                              pose.heading_rad, msg.angles_rad, msg.ranges_m, msg.beam_width_rad, msg.max_range_m)
+            store.commit(core.add_scan(scan))
+
+        # -- queries --------------------------------------------------------------------------------
+        def q_graph(_key: str, _p: QueryParams):
+            return core.graph()
+
+        def q_place(key: str, _p: QueryParams):
+            raw = key.rsplit("/", 1)[-1]
+            try:
+                pid = int(raw)
+            except ValueError:
+                raise QueryError(f"place id must be an integer, got {raw[:40]!r}") from None
+            try:
+                return core.place(pid)
+            except UnknownPlace as e:
+                raise QueryError(e.args[0]) from None
+
+        def q_path(_key: str, p: QueryParams):
+            a, b = p.int("from"), p.int("to")
+            try:
+                path = core.path(a, b)
+            except UnknownPlace as e:
+                raise QueryError(e.args[0]) from None
+            if path is None:
+                raise QueryError(f"no path from place {a} to place {b}: they are in unconnected parts")
+            return path
+
+        def q_grid(_key: str, p: QueryParams):
+            res = p.float("resolution", params.online.grid_resolution_m, min_value=0.02, max_value=5.0)
+            frame = p.str("frame", "relaxed", choices=("relaxed", "dead_reckoning"))
+            try:
+                return core.grid(res, frame, max_cells=params.max_grid_cells)
+            except ValueError as e:
+                raise QueryError(str(e)) from None
+
+        def q_stats(_key: str, _p: QueryParams):
+            return core.stats()
+
+        node.subscribe(topics.places_confirmed(robot), PlaceConfirmed, on_confirmed)
+        node.subscribe(topics.links_measured(robot), LinkMeasured, on_measured)
+        node.subscribe(topics.places_deleted(robot), PlaceDeleted, on_place_deleted)
+        node.subscribe(topics.links_deleted(robot), LinkDeleted, on_link_deleted)
+        node.subscribe(topics.localization(robot), LocalizationBelief, on_belief)
+        node.subscribe(topics.dr_pose(robot), DeadReckonedPose, on_dr)
+        node.subscribe(topics.sonar(robot), SonarScan, on_sonar)
+        node.queryable(topics.map_graph(robot), q_graph)
+        node.queryable(topics.map_place(robot, "*"), q_place)
+        node.queryable(topics.map_path(robot), q_path, params=("from", "to"))
+        node.queryable(topics.map_grid(robot), q_grid, params=("resolution", "frame"))
+        node.queryable(topics.map_stats(robot), q_stats)
+        node.spin(stop)
+    store.close()

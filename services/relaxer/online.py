@@ -1,0 +1,298 @@
+"""The relaxer service's core: the on-line map that places and links flow into (pure, no bus).
+
+Events (a place confirmed, a link measured, a place or link deleted) change the map; after each, one
+relaxation cycle runs (the paper's on-line mode, with the engine's automatic strategy for large
+loops) and the cycle's outcome is returned as a map update plus the store transaction that makes it
+durable. Queries (graph, place, path, grid, stats) are answered from the same state.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import msgspec
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import dijkstra
+
+from messages.types import (
+    LinkMeasured,
+    MapGraph,
+    MapLink,
+    MapPlace,
+    MapStats,
+    MapUpdate,
+    NoiseParams,
+    OccupancyGrid,
+    PathReply,
+    PlaceConfirmed,
+    PlacePosition,
+    PlaceReply,
+)
+from services.common.occupancy import GlobalGrid, SonarConeParams
+from services.relaxer.compass import CompassNoise, CompassParams, CompassRelaxer
+from services.relaxer.graph import MapGraph as Graph
+from services.relaxer.store import StoredMap, StoredScan, Transaction
+
+
+class OnlineParams(msgspec.Struct, frozen=True, kw_only=True):
+    """Parameters of the on-line map."""
+
+    initial_noise: NoiseParams = NoiseParams(s_dd=1e-4, s_aa=1e-3, s_da=0.0)  # Figure 3 step 1
+    changed_threshold_m: float = 1e-6  # a place whose coordinates move less is not in an update
+    grid_resolution_m: float = 0.15  # default cell size of the global grid (Section 4.3)
+    relax: CompassParams = CompassParams()  # the relaxation engine's parameters
+    cone: SonarConeParams = SonarConeParams()  # inverse sonar model of the global grid
+
+
+class UnknownPlace(KeyError):
+    """A query named a place the map does not hold."""
+
+
+def _noise_msg(n: CompassNoise) -> NoiseParams:
+    return NoiseParams(s_dd=n.s_dd_m2, s_aa=n.s_aa_rad2, s_da=n.s_da_m_rad)
+
+
+def _noise_core(n: NoiseParams) -> CompassNoise:
+    return CompassNoise(s_dd_m2=n.s_dd, s_aa_rad2=n.s_aa, s_da_m_rad=n.s_da)
+
+
+def _pair(a: int, b: int) -> tuple[int, int]:
+    return (a, b) if a <= b else (b, a)
+
+
+@dataclass
+class CycleOutcome:
+    """What one event did: the update to publish (None if nothing changed) and what to store."""
+
+    update: MapUpdate | None
+    tx: Transaction
+
+
+class OnlineMap:
+    """The relaxer's map: places, traversed links, relaxed coordinates, scans for the grid."""
+
+    def __init__(self, params: OnlineParams = OnlineParams(), stored: StoredMap | None = None) -> None:
+        self.params = params
+        self.version = 0
+        self.seq = 0
+        self.links: dict[tuple[int, int], MapLink] = {}
+        self._pending: dict[tuple[int, int], LinkMeasured] = {}  # links whose places are not known yet
+        self.scans: list[StoredScan] = []
+        self.updates = 0
+        self.iterations = 0
+        self.methods: dict[str, int] = {}
+        self.cycle_ms: deque[float] = deque(maxlen=10_000)  # the latest cycles' durations, for stats
+        self.energy = 0.0
+        graph = Graph()
+        xy = np.zeros((0, 2))
+        noise = _noise_core(params.initial_noise)
+        if stored is not None:
+            ids = sorted(stored.places)
+            graph.add_places(ids)
+            xy = np.array([stored.places[i] for i in ids], dtype=float).reshape(-1, 2)
+            for lk in stored.links:
+                graph.add_link(lk.from_id, lk.to_id, d_m=lk.d_m, theta_rad=lk.theta_rad, steps=lk.steps,
+                               mean_step_m=lk.mean_step_m, variance_m2=lk.variance_m2)
+                self.links[_pair(lk.from_id, lk.to_id)] = lk
+            self.version = stored.version
+            if stored.noise is not None:
+                noise = _noise_core(stored.noise)
+        self.relaxer = CompassRelaxer(graph, xy, noise=noise, params=params.relax)
+        if graph.n_places:
+            self.energy = self.relaxer.energy()
+
+    # -- events -----------------------------------------------------------------------------------
+    def on_place_confirmed(self, msg: PlaceConfirmed) -> CycleOutcome:
+        tx = Transaction()
+        if self.relaxer.graph.has_place(msg.place_id):
+            return CycleOutcome(None, tx)
+        self.relaxer.add_place(msg.place_id, (msg.x_m, msg.y_m))
+        tx.new_places.append((msg.place_id, msg.x_m, msg.y_m, msg.stamp))
+        for key in [k for k in self._pending if msg.place_id in k]:
+            lk = self._pending[key]
+            if self.relaxer.graph.has_place(lk.from_id) and self.relaxer.graph.has_place(lk.to_id):
+                del self._pending[key]
+                self._put_link(lk, tx)
+        return self._cycle(msg.stamp, tx)
+
+    def on_link_measured(self, msg: LinkMeasured) -> CycleOutcome:
+        tx = Transaction()
+        g = self.relaxer.graph
+        if msg.from_id == msg.to_id:
+            raise ValueError(f"link from place {msg.from_id} to itself")
+        if not (g.has_place(msg.from_id) and g.has_place(msg.to_id)):
+            self._pending[_pair(msg.from_id, msg.to_id)] = msg  # its places are on their way
+            return CycleOutcome(None, tx)
+        self._put_link(msg, tx)
+        return self._cycle(msg.stamp, tx)
+
+    def _put_link(self, msg: LinkMeasured, tx: Transaction) -> None:
+        key = _pair(msg.from_id, msg.to_id)
+        if key in self.links:  # a later traversal, fused by the recognizer: the new measurement replaces it
+            self.relaxer.remove_link(msg.from_id, msg.to_id)
+        self.relaxer.add_link(msg.from_id, msg.to_id, d_m=msg.d_m, theta_rad=msg.theta_rad, steps=msg.steps,
+                              mean_step_m=msg.mean_step_m, variance_m2=msg.variance_m2)
+        link = MapLink(from_id=msg.from_id, to_id=msg.to_id, d_m=msg.d_m, theta_rad=msg.theta_rad,
+                       steps=msg.steps, mean_step_m=msg.mean_step_m, variance_m2=msg.variance_m2,
+                       traversals=msg.traversals)
+        self.links[key] = link
+        tx.links.append((link, msg.stamp))
+
+    def on_place_deleted(self, place_id: int, stamp: float) -> CycleOutcome:
+        tx = Transaction()
+        if not self.relaxer.graph.has_place(place_id):
+            return CycleOutcome(None, tx)
+        self.relaxer.remove_place(place_id)
+        for key in [k for k in self.links if place_id in k]:
+            del self.links[key]
+        self._pending = {k: v for k, v in self._pending.items() if place_id not in k}
+        tx.deleted_places.append(place_id)
+        return self._cycle(stamp, tx)
+
+    def on_link_deleted(self, a: int, b: int, stamp: float) -> CycleOutcome:
+        tx = Transaction()
+        key = _pair(a, b)
+        self._pending.pop(key, None)
+        if key not in self.links:
+            return CycleOutcome(None, tx)
+        lk = self.links.pop(key)
+        self.relaxer.remove_link(a, b)
+        tx.deleted_links.append((lk.from_id, lk.to_id))
+        return self._cycle(stamp, tx)
+
+    def add_scan(self, scan: StoredScan) -> Transaction:
+        self.scans.append(scan)
+        return Transaction(scans=[scan])
+
+    def cycle(self, stamp: float, tx: Transaction | None = None) -> CycleOutcome:
+        """One relaxation cycle (also run after every event); its update and what to store."""
+        return self._cycle(stamp, tx if tx is not None else Transaction())
+
+    def _cycle(self, stamp: float, tx: Transaction) -> CycleOutcome:
+        r = self.relaxer
+        g = r.graph
+        if g.n_places == 0:
+            self.energy = 0.0
+            self.version += 1
+            tx.version = self.version
+            return CycleOutcome(self._update(stamp, [], True, 0, "none"), tx)
+        before = r.xy
+        report = r.cycle()
+        after = r.xy
+        n_before = len(before)
+        moved = np.zeros(len(after), dtype=bool)
+        moved[:n_before] = np.max(np.abs(after[:n_before] - before), axis=1) > self.params.changed_threshold_m
+        moved[n_before:] = True
+        ids = g.ids
+        changed = [PlacePosition(place_id=int(ids[i]), x_m=float(after[i, 0]), y_m=float(after[i, 1]))
+                   for i in np.flatnonzero(moved)]
+        tx.moved.extend((p.place_id, p.x_m, p.y_m) for p in changed)
+        method = "exact" if report.exact else "sweep"
+        self.methods[method] = self.methods.get(method, 0) + 1
+        self.updates += 1
+        self.iterations += 1
+        self.energy = report.energy
+        self.version += 1
+        tx.version = self.version
+        tx.noise = _noise_msg(report.noise)
+        return CycleOutcome(self._update(stamp, changed, bool(moved.all()), 1, method), tx)
+
+    def _update(self, stamp: float, changed: list[PlacePosition], full: bool, iterations: int,
+                method: str) -> MapUpdate:
+        msg = MapUpdate(stamp=stamp, seq=self.seq, version=self.version, changed=changed, full=full,
+                        places=self.relaxer.graph.n_places, links=len(self.links), energy=self.energy,
+                        iterations=iterations, method=method, noise=_noise_msg(self.relaxer.noise))
+        self.seq += 1
+        return msg
+
+    # -- queries ----------------------------------------------------------------------------------
+    def coordinates(self) -> dict[int, tuple[float, float]]:
+        xy = self.relaxer.xy
+        return {int(pid): (float(xy[i, 0]), float(xy[i, 1])) for i, pid in enumerate(self.relaxer.graph.ids)}
+
+    def graph(self) -> MapGraph:
+        pinned = self.relaxer.graph.ids[self.relaxer.pinned_index] if self.relaxer.graph.n_places else -1
+        return MapGraph(version=self.version,
+                        places=[MapPlace(place_id=i, x_m=x, y_m=y) for i, (x, y) in self.coordinates().items()],
+                        links=list(self.links.values()), energy=self.energy,
+                        noise=_noise_msg(self.relaxer.noise), pinned=int(pinned))
+
+    def place(self, place_id: int) -> PlaceReply:
+        g = self.relaxer.graph
+        if not g.has_place(place_id):
+            raise UnknownPlace(f"no place {place_id} in the map ({g.n_places} places)")
+        x, y = self.relaxer.position(place_id)
+        links = [lk for key, lk in self.links.items() if place_id in key]
+        return PlaceReply(place=MapPlace(place_id=place_id, x_m=float(x), y_m=float(y)), links=links)
+
+    def path(self, from_id: int, to_id: int) -> PathReply | None:
+        """Shortest path over traversed links (weights: measured distances); None if unconnected."""
+        g = self.relaxer.graph
+        for pid in (from_id, to_id):
+            if not g.has_place(pid):
+                raise UnknownPlace(f"no place {pid} in the map ({g.n_places} places)")
+        ids = g.ids
+        index = {int(pid): i for i, pid in enumerate(ids)}
+        n = len(ids)
+        if self.links:
+            rows = np.array([index[a] for a, _ in self.links])
+            cols = np.array([index[b] for _, b in self.links])
+            w = np.array([max(lk.d_m, 1e-9) for lk in self.links.values()])
+            adj = sp.coo_matrix((w, (rows, cols)), shape=(n, n)).tocsr()
+        else:
+            adj = sp.csr_matrix((n, n))
+        dist, pred = dijkstra(adj, directed=False, indices=index[from_id], return_predecessors=True)
+        t = index[to_id]
+        if not np.isfinite(dist[t]):
+            return None
+        path = [t]
+        while path[-1] != index[from_id]:
+            path.append(int(pred[path[-1]]))
+        return PathReply(from_id=from_id, to_id=to_id, places=[int(ids[i]) for i in reversed(path)],
+                         length_m=float(dist[t]))
+
+    def grid(self, resolution_m: float, frame: str = "relaxed", *, max_cells: int = 4_000_000) -> OccupancyGrid:
+        """The global occupancy grid (Section 4.3, Figures 13-14) from the stored scans.
+
+        ``frame="relaxed"`` places each scan at its place's relaxed coordinates plus the robot's
+        offset from the place centre; ``frame="dead_reckoning"`` at the compass dead-reckoning pose.
+
+        Raises
+        ------
+        ValueError
+            When the grid would have more than ``max_cells`` cells at this resolution.
+        """
+        coords = self.coordinates()
+        placed = []
+        for s in self.scans:
+            if frame == "relaxed":
+                if s.place_id not in coords:
+                    continue
+                px, py = coords[s.place_id]
+                placed.append((px + s.off_x, py + s.off_y, s))
+            else:
+                placed.append((s.dr_x, s.dr_y, s))
+        if placed:
+            xy = np.array([(x, y) for x, y, _ in placed])
+            reach = 2 * max(s.max_range for s in self.scans)
+            cells = np.prod((np.ptp(xy, axis=0) + reach) / resolution_m + 1)
+            if cells > max_cells:
+                raise ValueError(f"a grid at {resolution_m:g} m would have {cells:.3g} cells "
+                                 f"(at most {max_cells}); ask a coarser resolution")
+        grid = GlobalGrid(resolution_m, self.params.cone)
+        for x, y, s in placed:
+            grid.integrate(x, y, s.heading, s.angles, s.ranges, beam_width_rad=s.beam_width, max_range_m=s.max_range)
+        cells = grid.occupancy_percent()
+        return OccupancyGrid(resolution_m=resolution_m, origin_x_m=float(grid.origin[0]),
+                             origin_y_m=float(grid.origin[1]), width=int(cells.shape[1] if cells.size else 0),
+                             height=int(cells.shape[0] if cells.size else 0), cells=cells.tobytes(),
+                             version=self.version)
+
+    def stats(self) -> MapStats:
+        ms = np.array(self.cycle_ms) if self.cycle_ms else np.zeros(1)
+        return MapStats(version=self.version, places=self.relaxer.graph.n_places, links=len(self.links),
+                        energy=self.energy, updates=self.updates, iterations=self.iterations,
+                        cycle_ms_mean=float(ms.mean()), cycle_ms_p99=float(np.percentile(ms, 99)),
+                        methods=dict(self.methods), noise=_noise_msg(self.relaxer.noise))

@@ -1,0 +1,136 @@
+"""The relaxer as a process on loopback: map updates, the query API, bad queries, and resume after SIGKILL."""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+
+import pytest
+
+from messages import topics
+from messages.codec import codec
+from messages.types import (
+    LinkMeasured,
+    MapGraph,
+    MapStats,
+    MapUpdate,
+    OccupancyGrid,
+    PathReply,
+    PlaceConfirmed,
+    PlaceReply,
+)
+from services.runtime import AliveWatcher, QueryFailed, query
+from tests.conftest import wait_until
+
+ROBOT = "relaxtest"
+
+
+class Bus:
+    def __init__(self, session):
+        self.session = session
+        self.updates: list[MapUpdate] = []
+        dec = codec(MapUpdate)
+        self.sub = session.declare_subscriber(topics.map_update(ROBOT),
+                                              lambda s: self.updates.append(dec.decode(s.payload.to_bytes())))
+        self.places = session.declare_publisher(topics.places_confirmed(ROBOT))
+        self.links = session.declare_publisher(topics.links_measured(ROBOT))
+
+    def place(self, i, x, y):
+        self.places.put(codec(PlaceConfirmed).encode(PlaceConfirmed(stamp=i, seq=i, place_id=i, x_m=x, y_m=y)))
+
+    def link(self, a, b, dx, dy, seq=0):
+        self.links.put(codec(LinkMeasured).encode(LinkMeasured(
+            stamp=10.0 + seq, seq=seq, from_id=a, to_id=b, d_m=math.hypot(dx, dy), theta_rad=math.atan2(dy, dx),
+            steps=10, mean_step_m=0.1)))
+
+    def close(self):
+        for e in (self.sub, self.places, self.links):
+            e.undeclare()
+
+
+def _start(processes, endpoint, store):
+    return processes.python("services.relaxer", "--robot", ROBOT, "--connect", endpoint,
+                            "--listen", "tcp/127.0.0.1:0", "--store", str(store))
+
+
+@pytest.fixture
+def relaxer(hub, processes, tmp_path):
+    session, endpoint = hub
+    watcher = AliveWatcher(session, ROBOT)
+    proc = _start(processes, endpoint, tmp_path / "map.sqlite")
+    assert watcher.wait_alive(["relaxer"], 20)
+    bus = Bus(session)
+    assert wait_until(lambda: bus.places.matching_status and bus.links.matching_status, 10)
+    yield session, endpoint, proc, watcher, bus
+    bus.close()
+    watcher.close()
+
+
+def _square(bus):
+    for i, (x, y) in enumerate([(0, 0), (1.0, 0.05), (1.1, 1.05), (0.1, 1.15)]):
+        bus.place(i, x, y)
+    for k, (a, b, dx, dy) in enumerate([(0, 1, 1, 0), (1, 2, 0, 1), (2, 3, -1, 0), (3, 0, 0, -1)]):
+        bus.link(a, b, dx, dy, seq=k)
+
+
+def test_updates_and_queries(relaxer):
+    session, _, proc, _, bus = relaxer
+    _square(bus)
+    assert wait_until(lambda: bus.updates and bus.updates[-1].links == 4, 10)
+    # one update per event that changed the map (a link that arrives before its places waits for them)
+    versions = [u.version for u in bus.updates]
+    assert versions == list(range(1, len(versions) + 1)) and 4 <= len(versions) <= 8
+    g = query(session, topics.map_graph(ROBOT), type_=MapGraph)
+    assert {p.place_id for p in g.places} == {0, 1, 2, 3} and len(g.links) == 4 and g.version == versions[-1]
+    g_json = query(session, topics.map_graph(ROBOT), fmt="json")
+    assert len(g_json["places"]) == 4
+    assert query(session, topics.map_place(ROBOT, 2), type_=PlaceReply).place.place_id == 2
+    path = query(session, topics.map_path(ROBOT), "from=0&to=2", type_=PathReply)
+    assert path.places[0] == 0 and path.places[-1] == 2 and path.length_m == pytest.approx(2.0)
+    grid = query(session, topics.map_grid(ROBOT), "resolution=0.5", type_=OccupancyGrid)
+    assert grid.resolution_m == 0.5
+    st = query(session, topics.map_stats(ROBOT), type_=MapStats)
+    assert st.places == 4 and st.links == 4 and st.updates == len(versions)
+    bad = [
+        (topics.map_place(ROBOT, 99), "", "no place 99"),
+        (topics.map_place(ROBOT, "abc"), "", "place id must be an integer"),
+        (topics.map_path(ROBOT), "from=0", "missing parameter 'to'"),
+        (topics.map_path(ROBOT), "from=0&to=x", "parameter 'to' must be an integer"),
+        (topics.map_path(ROBOT), "from=0&to=42", "no place 42"),
+        (topics.map_grid(ROBOT), "resolution=-1", "must be at least"),
+        (topics.map_grid(ROBOT), "resolution=nan", "must be finite"),
+        (topics.map_grid(ROBOT), "frame=sideways", "must be one of"),
+        (topics.map_graph(ROBOT), "x=" + "y" * 5000, "unknown parameter"),
+    ]
+    for key, params, expected in bad:
+        with pytest.raises(QueryFailed, match=expected):
+            query(session, key, params)
+    assert proc.poll() is None
+    assert query(session, topics.map_stats(ROBOT), type_=MapStats).places == 4
+
+
+def test_resume_after_sigkill(relaxer, processes, tmp_path):
+    session, endpoint, proc, watcher, bus = relaxer
+    _square(bus)
+    assert wait_until(lambda: bus.updates and bus.updates[-1].links == 4, 10)
+    before = query(session, topics.map_graph(ROBOT), type_=MapGraph)
+    os.killpg(proc.pid, signal.SIGKILL)
+    assert watcher.wait_gone("relaxer", 5)
+    _start(processes, endpoint, tmp_path / "map.sqlite")
+    assert watcher.wait_alive(["relaxer"], 20)
+    after = query(session, topics.map_graph(ROBOT), type_=MapGraph)
+    assert after.version == before.version
+    # stored coordinates are written when a place moves more than 1e-6 m
+    was = {p.place_id: (p.x_m, p.y_m) for p in before.places}
+    now = {p.place_id: (p.x_m, p.y_m) for p in after.places}
+    assert set(now) == set(was)
+    assert all(math.dist(now[k], was[k]) < 1e-5 for k in now)
+    assert sorted((lk.from_id, lk.to_id) for lk in after.links) == sorted((lk.from_id, lk.to_id) for lk in before.links)
+    # mapping goes on from where it was
+    assert wait_until(lambda: bus.places.matching_status, 10)
+    bus.place(4, 2.0, 0.0)
+    bus.link(1, 4, 1.0, 0.0, seq=9)
+    assert wait_until(lambda: query(session, topics.map_stats(ROBOT), type_=MapStats).links == 5, 10)
+    final = query(session, topics.map_graph(ROBOT), type_=MapGraph)
+    assert final.version > before.version and len(final.places) == 5

@@ -1,0 +1,121 @@
+"""The relaxer service's core: events in, updates and store transactions out, queries answered."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from messages.types import LinkMeasured, PlaceConfirmed
+from services.relaxer.online import OnlineMap, UnknownPlace
+from services.relaxer.store import MapStore, StoredScan
+
+
+def _place(i: int, x: float, y: float) -> PlaceConfirmed:
+    return PlaceConfirmed(stamp=float(i), seq=i, place_id=i, x_m=x, y_m=y)
+
+
+def _link(a: int, b: int, dx: float, dy: float, traversals: int = 1) -> LinkMeasured:
+    return LinkMeasured(stamp=10.0, seq=0, from_id=a, to_id=b, d_m=math.hypot(dx, dy), theta_rad=math.atan2(dy, dx),
+                        steps=10, mean_step_m=0.1, traversals=traversals)
+
+
+def square(m: OnlineMap) -> None:
+    """Four places on a 1 m square, dead reckoning drifted, the loop closed by the last link."""
+    for i, (x, y) in enumerate([(0, 0), (1.0, 0.05), (1.1, 1.05), (0.1, 1.15)]):
+        m.on_place_confirmed(_place(i, x, y))
+    m.on_link_measured(_link(0, 1, 1, 0))
+    m.on_link_measured(_link(1, 2, 0, 1))
+    m.on_link_measured(_link(2, 3, -1, 0))
+    m.on_link_measured(_link(3, 0, 0, -1))
+
+
+def test_updates_count_up_and_relax_the_loop():
+    m = OnlineMap()
+    square(m)
+    assert m.version == 8
+    for _ in range(200):
+        out = m.cycle(20.0)
+    xy = m.coordinates()
+    assert xy[0] == (0.0, 0.0)  # pinned
+    for pid, want in {1: (1, 0), 2: (1, 1), 3: (0, 1)}.items():
+        assert np.allclose(xy[pid], want, atol=1e-6)
+    assert out.update.version == m.version and out.update.places == 4 and out.update.links == 4
+
+
+def test_link_before_its_places_waits_for_them():
+    m = OnlineMap()
+    m.on_place_confirmed(_place(0, 0, 0))
+    out = m.on_link_measured(_link(0, 1, 1, 0))
+    assert out.update is None and m.links == {}
+    out = m.on_place_confirmed(_place(1, 0.9, 0.0))
+    assert (0, 1) in m.links and out.update.links == 1
+    assert [lk for lk, _ in out.tx.links][0].to_id == 1
+
+
+def test_later_traversal_replaces_the_measurement():
+    m = OnlineMap()
+    square(m)
+    m.on_link_measured(_link(1, 0, -1.02, 0.0, traversals=2))
+    assert len(m.links) == 4 and m.links[(0, 1)].traversals == 2 and m.links[(0, 1)].from_id == 1
+
+
+def test_delete_place_and_link():
+    m = OnlineMap()
+    square(m)
+    m.on_link_deleted(3, 0, 30.0)
+    assert (0, 3) not in m.links
+    out = m.on_place_deleted(2, 31.0)
+    assert out.tx.deleted_places == [2]
+    assert set(m.coordinates()) == {0, 1, 3}
+    assert set(m.links) == {(0, 1)}
+
+
+def test_queries():
+    m = OnlineMap()
+    square(m)
+    g = m.graph()
+    assert len(g.places) == 4 and len(g.links) == 4 and g.pinned == 0
+    assert m.place(2).place.place_id == 2 and len(m.place(2).links) == 2
+    with pytest.raises(UnknownPlace):
+        m.place(99)
+    p = m.path(0, 2)
+    assert p.places in ([0, 1, 2], [0, 3, 2]) and p.length_m == pytest.approx(2.0)
+    m.on_place_confirmed(_place(7, 5, 5))
+    assert m.path(0, 7) is None
+    st = m.stats()
+    assert st.places == 5 and st.links == 4 and st.updates == m.updates
+
+
+def test_grid_places_scans_at_relaxed_coordinates():
+    m = OnlineMap()
+    square(m)
+    angles = np.deg2rad(np.arange(16) * 22.5)
+    ranges = np.full(16, 6.5)
+    ranges[4] = 1.0  # a wall 1 m north of place 2
+    m.add_scan(StoredScan(0.0, 2, 0.0, 0.0, 50.0, 50.0, 0.0, angles, ranges, np.deg2rad(25), 6.5))
+    relaxed = m.grid(0.15, "relaxed")
+    dr = m.grid(0.15, "dead_reckoning")
+    x2, y2 = m.coordinates()[2]
+    for grid, (x, y) in ((relaxed, (x2, y2 + 1.0)), (dr, (50.0, 51.0))):
+        cells = np.frombuffer(grid.cells, np.uint8).reshape(grid.height, grid.width)
+        col = int((x - grid.origin_x_m) / grid.resolution_m)
+        row = int((y - grid.origin_y_m) / grid.resolution_m)
+        assert cells[row, col] > 60
+    with pytest.raises(ValueError, match="cells"):
+        m.grid(0.001, "relaxed", max_cells=1000)
+
+
+def test_resume_from_store(tmp_path):
+    store = MapStore(tmp_path / "m.sqlite")
+    m = OnlineMap()
+    for msg in [_place(0, 0, 0), _place(1, 1.0, 0.1), _link(0, 1, 1, 0)]:
+        out = m.on_place_confirmed(msg) if isinstance(msg, PlaceConfirmed) else m.on_link_measured(msg)
+        store.commit(out.tx)
+    store.close()
+    again = OnlineMap(stored=MapStore(tmp_path / "m.sqlite").load())
+    assert again.version == m.version
+    a, b = again.coordinates(), m.coordinates()
+    assert set(a) == set(b) and all(np.allclose(a[k], b[k], atol=1e-12) for k in a)
+    assert again.links == m.links
