@@ -1,0 +1,548 @@
+"""Explorer core: predicted and confirmed places, link confidence, loop closing, path following."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+from messages.types import LocalizationBelief, Pose2, SonarScan
+from services.explorer.controller import Command, clear_towards, open_directions, velocity_command
+from services.explorer.planner import dijkstra, path_to, reachable
+
+NO_PLACE = -1
+TRAVERSED, INFERRED, PREDICTED = "traversed", "inferred", "predicted"  # link kinds
+
+
+@dataclass(frozen=True)
+class ExplorerParams:
+    """Parameters of the explorer core (defaults in code; deploy files only override)."""
+
+    place_spacing_m: float = 1.0  # distance of a predicted place from the confirmed place it comes from
+    directions: int = 8  # candidate directions of predicted places, evenly spaced from east (world frame)
+    open_distance_m: float = 1.5  # free length the sonar must show along a direction for it to be open
+    open_half_width_m: float = 0.2  # half width of the corridor that must be seen free (robot radius)
+    sample_step_m: float = 0.1  # spacing of the points checked along a corridor by the free-space classifier
+    min_place_separation_m: float = 0.8  # no place is predicted this close to an existing place
+    merge_distance_m: float = 0.5  # predicted places this close to a newly confirmed place are removed
+    inferred_link_max_m: float = 2.0  # links are inferred to confirmed places closer than this
+    loop_closing_path_m: float = 3.0  # traversed path longer than this to a neighbour: go there directly
+    confidence_initial: float = 0.5  # confidence of a new link
+    confidence_rate: float = 0.5  # lambda of Eqs. 17-18
+    confidence_min: float = 0.2  # a link is deleted when its confidence falls below this
+    arrive_tolerance_m: float = 0.25  # the robot has reached a place within this distance of it
+    leg_timeout_base_s: float = 20.0  # a leg fails after this ...
+    leg_timeout_per_m_s: float = 20.0  # ... plus this per metre of its length
+    blocked_timeout_s: float = 5.0  # a leg fails after the controller is blocked this long
+    max_speed_mps: float = 0.3  # forward speed limit
+    max_turn_radps: float = 1.0  # turn rate limit
+    heading_gain: float = 1.5  # turn rate per radian of heading error, 1/s
+    turn_in_place_rad: float = 0.8  # above this heading error the robot turns without moving
+    stop_distance_m: float = 0.3  # an obstacle ahead closer than this stops the robot
+    slow_distance_m: float = 0.8  # the robot slows down linearly below this frontal clearance
+    avoid_distance_m: float = 0.6  # obstacles in the front half closer than this turn the robot away
+    avoid_gain: float = 0.8  # turn rate per unit of (1 - range / avoid distance), rad/s
+    front_half_angle_rad: float = 0.5  # half angle of the frontal sector
+
+
+@dataclass(frozen=True)
+class PlaceFix:
+    """A localization from the place recognizer, with the time it refers to.
+
+    ``place_id`` -1 means between places; the offset is robot minus place centre (world frame).
+    """
+
+    place_id: int
+    offset_x_m: float
+    offset_y_m: float
+    stamp_s: float
+
+    @classmethod
+    def from_message(cls, msg: LocalizationBelief) -> PlaceFix:
+        return cls(msg.place_id, msg.offset_x_m, msg.offset_y_m, msg.stamp)
+
+
+# Events: the fields of the messages of the same name in messages.types (without stamp and seq).
+@dataclass(frozen=True)
+class PlacePredictedEvent:
+    place_id: int
+    x_m: float
+    y_m: float
+    parent_id: int
+
+
+@dataclass(frozen=True)
+class PlaceConfirmedEvent:
+    place_id: int
+    x_m: float
+    y_m: float
+
+
+@dataclass(frozen=True)
+class PlaceDeletedEvent:
+    place_id: int
+    reason: str
+
+
+@dataclass(frozen=True)
+class LinkInferredEvent:
+    from_id: int
+    to_id: int
+    d_m: float
+
+
+@dataclass(frozen=True)
+class LinkConfidenceEvent:
+    from_id: int
+    to_id: int
+    confidence: float
+
+
+@dataclass(frozen=True)
+class LinkDeletedEvent:
+    from_id: int
+    to_id: int
+    reason: str
+
+
+Event = (PlacePredictedEvent | PlaceConfirmedEvent | PlaceDeletedEvent | LinkInferredEvent
+         | LinkConfidenceEvent | LinkDeletedEvent)
+
+
+@dataclass(frozen=True)
+class ExplorerStatus:
+    """Fields of :class:`messages.types.ExplorationStatus`."""
+
+    complete: bool
+    confirmed: int
+    predicted: int
+    target_id: int
+
+
+@dataclass(frozen=True)
+class ExplorerOutput:
+    """One step's result: events in order, the velocity command, the status, diagnostics."""
+
+    events: tuple[Event, ...]
+    command: Command
+    status: ExplorerStatus
+    diagnostics: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class Place:
+    """A place of the explorer's map; a predicted place keeps its offset from its parent."""
+
+    place_id: int
+    x_m: float
+    y_m: float
+    confirmed: bool
+    parent_id: int
+
+
+@dataclass
+class Link:
+    """A link between two places: traversed, inferred (planning only) or to a predicted place."""
+
+    a: int
+    b: int
+    kind: str
+    confidence: float
+
+
+def confidence_after_traversal(confidence: float, rate: float) -> float:
+    """Eq. 17: ``c' = lambda + (1 - lambda) c``.
+
+    >>> confidence_after_traversal(0.5, 0.5)
+    0.75
+    """
+    return rate + (1.0 - rate) * confidence
+
+
+def confidence_after_failure(confidence: float, rate: float) -> float:
+    """Eq. 18: ``c' = (1 - lambda) c``.
+
+    >>> confidence_after_failure(0.5, 0.5)
+    0.25
+    """
+    return (1.0 - rate) * confidence
+
+
+def _key(a: int, b: int) -> tuple[int, int]:
+    return (a, b) if a < b else (b, a)
+
+
+class Explorer:
+    """Explores by going to the nearest predicted place (Section 4.2).
+
+    Call :meth:`step` on every control tick with the time, the robot's dead-reckoned pose, the latest
+    sonar scan (or ``None``) and the place recognizer's localization *on the tick it arrived*
+    (``None`` otherwise); :meth:`move_places` takes relaxed coordinates.
+
+    Notes
+    -----
+    Position: the robot's map position is the last localized place centre plus its offset, moved by
+    the dead-reckoned displacement since. The first step confirms place 0 where the robot stands.
+
+    Rules (Section 4.2, Eqs. 17-18):
+
+    - *Prediction*: around each newly confirmed place, a place is predicted ``place_spacing_m`` away
+      in each of ``directions`` world directions that the sonar shows open
+      (:func:`services.explorer.controller.clear_towards` with ``open_distance_m``), unless a place is
+      already within ``min_place_separation_m``.
+    - *Target*: the nearest predicted place by the shortest path over all links (Dijkstra, weight
+      length / confidence); the robot follows the path one leg (link) at a time.
+    - *Confirmation*: the leg towards a predicted place, from its nearest confirmed place, succeeds
+      when the robot comes within ``arrive_tolerance_m`` of it, i.e. it could travel the 1 m; the
+      place is confirmed at the robot's position (dead reckoning relative to the last place). The
+      leg fails when the controller stays blocked for ``blocked_timeout_s`` or the leg outlasts
+      ``leg_timeout_base_s + leg_timeout_per_m_s * length``: the predicted place is deleted.
+      Arriving at a known confirmed place instead ends the leg; a predicted target within
+      ``merge_distance_m`` of that place is deleted as a duplicate.
+    - *Inferred links* from a newly confirmed place to confirmed places within
+      ``inferred_link_max_m`` whose direction the sonar shows clear (planning only).
+    - *Loop closing*: for each such neighbour, if the shortest path over traversed links only is
+      longer than ``loop_closing_path_m`` (or none exists), the robot later travels that inferred
+      link directly, before any further exploration.
+    - *Confidence*: a new link starts at ``confidence_initial``; a traversal sets
+      ``c = lambda + (1 - lambda) c`` (Eq. 17); a failed traversal (timeout, blocked, or arrival at a
+      different place than the leg's end) sets ``c = (1 - lambda) c`` (Eq. 18); below
+      ``confidence_min`` the link is deleted, then every place no path from the robot's last place
+      reaches is deleted.
+    - *End*: exploration is complete when no predicted place and no loop-closing leg is left.
+    """
+
+    def __init__(self, params: ExplorerParams | None = None) -> None:
+        self.params = params or ExplorerParams()
+        self.places: dict[int, Place] = {}
+        self.links: dict[tuple[int, int], Link] = {}
+        self.robot_xy: tuple[float, float] | None = None
+        self.current = NO_PLACE  # the confirmed place the robot is at, -1 between places
+        self.last_place = NO_PLACE  # the confirmed place the robot was at last
+        self.leg: tuple[int, int] | None = None
+        self.target = NO_PLACE  # final place of the current plan
+        self.loop_queue: list[tuple[int, int]] = []  # inferred links to travel directly
+        self.complete = False
+        self._next_id = 0
+        self._last_pose: Pose2 | None = None
+        self._last_scan: SonarScan | None = None
+        self._leg_start_s = 0.0
+        self._blocked_since: float | None = None
+        self._fix_after_s = -math.inf  # localizations older than this are stale (before a confirmation)
+
+    # --- inputs -------------------------------------------------------------------------------
+
+    def step(self, now_s: float, pose: Pose2, scan: SonarScan | None = None,
+             fix: PlaceFix | None = None) -> ExplorerOutput:
+        """One control tick.
+
+        Parameters
+        ----------
+        now_s : float
+            Simulated time, seconds.
+        pose : messages.types.Pose2
+            Dead-reckoned pose (compass heading).
+        scan : messages.types.SonarScan or None
+            The latest sonar scan, if a new one arrived.
+        fix : PlaceFix or None
+            The latest localization, only on the tick it arrived.
+
+        Returns
+        -------
+        ExplorerOutput
+        """
+        events: list[Event] = []
+        if self._last_pose is None or self.robot_xy is None:
+            self.robot_xy = (pose.x_m, pose.y_m)
+        else:
+            self.robot_xy = (self.robot_xy[0] + pose.x_m - self._last_pose.x_m,
+                             self.robot_xy[1] + pose.y_m - self._last_pose.y_m)
+        self._last_pose = pose
+        if scan is not None:
+            self._last_scan = scan
+        if not any(p.confirmed for p in self.places.values()):
+            if self._last_scan is None:
+                return self._output(events, now_s, pose)
+            events += self._confirm_here(self._new_id(), NO_PLACE, now_s)
+        if fix is not None and fix.stamp_s >= self._fix_after_s:
+            events += self._on_fix(fix, now_s)
+        if self.leg is not None:
+            events += self._progress(now_s)
+        if self.leg is None and not self.complete:
+            events += self._plan(now_s)
+        return self._output(events, now_s, pose)
+
+    def move_places(self, centres: Mapping[int, tuple[float, float]]) -> None:
+        """New coordinates of confirmed places (e.g. relaxed); predicted places follow their parent."""
+        shift = (0.0, 0.0)
+        for pid, (x, y) in centres.items():
+            p = self.places.get(pid)
+            if p is None or not p.confirmed:
+                continue
+            dx, dy = x - p.x_m, y - p.y_m
+            if pid == self.last_place:
+                shift = (dx, dy)
+            p.x_m, p.y_m = x, y
+            for q in self.places.values():
+                if not q.confirmed and q.parent_id == pid:
+                    q.x_m, q.y_m = q.x_m + dx, q.y_m + dy
+        if self.robot_xy is not None:
+            self.robot_xy = (self.robot_xy[0] + shift[0], self.robot_xy[1] + shift[1])
+
+    # --- queries ------------------------------------------------------------------------------
+
+    def graph(self, kinds: tuple[str, ...] = (TRAVERSED, INFERRED, PREDICTED), *,
+              by_confidence: bool = True) -> dict[int, dict[int, float]]:
+        """Adjacency over links of the given kinds, weight length (divided by confidence)."""
+        g: dict[int, dict[int, float]] = {pid: {} for pid in self.places}
+        for (a, b), link in self.links.items():
+            if link.kind in kinds:
+                w = self.distance(a, b) / (link.confidence if by_confidence else 1.0)
+                g[a][b] = w
+                g[b][a] = w
+        return g
+
+    def distance(self, a: int, b: int) -> float:
+        pa, pb = self.places[a], self.places[b]
+        return math.hypot(pb.x_m - pa.x_m, pb.y_m - pa.y_m)
+
+    def shortest_path(self, a: int, b: int) -> list[int]:
+        """Planned path from ``a`` to ``b`` over all links; empty when none."""
+        _, prev = dijkstra(self.graph(), a)
+        return path_to(prev, a, b)
+
+    # --- rules --------------------------------------------------------------------------------
+
+    def _new_id(self) -> int:
+        pid = self._next_id
+        self._next_id += 1
+        return pid
+
+    def _on_fix(self, fix: PlaceFix, now_s: float) -> list[Event]:
+        place = self.places.get(fix.place_id)
+        if fix.place_id == NO_PLACE:
+            self.current = NO_PLACE
+            return []
+        if place is None or not place.confirmed:
+            return []
+        self.robot_xy = (place.x_m + fix.offset_x_m, place.y_m + fix.offset_y_m)
+        if fix.place_id == self.current:
+            return []
+        return self._arrive(fix.place_id, now_s)
+
+    def _progress(self, now_s: float) -> list[Event]:
+        assert self.leg is not None and self.robot_xy is not None
+        frm, to = self.leg
+        target = self.places[to]
+        near = math.hypot(target.x_m - self.robot_xy[0], target.y_m - self.robot_xy[1]) <= self.params.arrive_tolerance_m
+        if near and not target.confirmed:
+            return self._confirm_here(to, frm, now_s)
+        if near and to != self.current:
+            return self._arrive(to, now_s)
+        p = self.params
+        timeout = p.leg_timeout_base_s + p.leg_timeout_per_m_s * self.distance(frm, to)
+        if now_s - self._leg_start_s > timeout:
+            return self._fail_leg(now_s, "timeout")
+        if self._blocked_since is not None and now_s - self._blocked_since >= p.blocked_timeout_s:
+            return self._fail_leg(now_s, "blocked")
+        return []
+
+    def _arrive(self, k: int, now_s: float) -> list[Event]:
+        """The robot is at confirmed place ``k`` (recognised, or reached the leg's end)."""
+        events: list[Event] = []
+        prev = self.last_place
+        if self.leg is not None:
+            frm, to = self.leg
+            if k == frm and k == prev:
+                self.current = k
+                return events
+            if k == to:
+                events += self._traversed(prev if prev != NO_PLACE else frm, k)
+                if self.loop_queue and self.loop_queue[0] == (frm, to):
+                    self.loop_queue.pop(0)
+            else:
+                if self.places[to].confirmed and k != frm:
+                    events += self._failed(frm, to, "reached another place")
+                elif not self.places[to].confirmed and self.distance(to, k) < self.params.merge_distance_m:
+                    events += self._delete_place(to, f"coincides with place {k}")
+                if prev != NO_PLACE and prev != k and prev in self.places:
+                    events += self._traversed(prev, k)
+            self.leg = None
+        elif prev != NO_PLACE and prev != k and prev in self.places:
+            events += self._traversed(prev, k)
+        self.current = self.last_place = k
+        events += self._prune()
+        return events
+
+    def _traversed(self, a: int, b: int) -> list[Event]:
+        """A traversal of ``a -> b``: a new link at the initial confidence, or Eq. 17."""
+        if a == b or a not in self.places or b not in self.places:
+            return []
+        p = self.params
+        link = self.links.get(_key(a, b))
+        if link is None or link.kind == PREDICTED:
+            link = Link(*_key(a, b), TRAVERSED, p.confidence_initial)
+            self.links[_key(a, b)] = link
+        else:
+            link.kind = TRAVERSED
+            link.confidence = confidence_after_traversal(link.confidence, p.confidence_rate)
+        return [LinkConfidenceEvent(a, b, link.confidence)]
+
+    def _failed(self, a: int, b: int, reason: str) -> list[Event]:
+        """A failed traversal of ``a -> b`` (Eq. 18); deletes the link below the threshold."""
+        p = self.params
+        link = self.links.get(_key(a, b))
+        if link is None:
+            return []
+        link.confidence = confidence_after_failure(link.confidence, p.confidence_rate)
+        events: list[Event] = [LinkConfidenceEvent(a, b, link.confidence)]
+        if link.confidence < p.confidence_min:
+            del self.links[_key(a, b)]
+            events.append(LinkDeletedEvent(a, b, f"confidence {link.confidence:.3f} below "
+                                                  f"{p.confidence_min} ({reason})"))
+            self.loop_queue = [q for q in self.loop_queue if _key(*q) != _key(a, b)]
+        return events
+
+    def _fail_leg(self, now_s: float, reason: str) -> list[Event]:
+        assert self.leg is not None
+        frm, to = self.leg
+        self.leg = None
+        self._blocked_since = None
+        if self.loop_queue and self.loop_queue[0] == (frm, to):
+            self.loop_queue.pop(0)
+        if not self.places[to].confirmed:
+            return self._delete_place(to, f"cannot travel {self.params.place_spacing_m} m towards it ({reason})")
+        return self._failed(frm, to, reason) + self._prune()
+
+    def _delete_place(self, pid: int, reason: str) -> list[Event]:
+        events: list[Event] = []
+        for key in [k for k in self.links if pid in k]:
+            link = self.links.pop(key)
+            if link.kind != PREDICTED:
+                events.append(LinkDeletedEvent(link.a, link.b, f"place {pid} deleted"))
+        del self.places[pid]
+        self.loop_queue = [q for q in self.loop_queue if pid not in q]
+        if self.leg is not None and pid in self.leg:
+            self.leg = None
+        events.append(PlaceDeletedEvent(pid, reason))
+        return events
+
+    def _prune(self) -> list[Event]:
+        """Delete every place that no path from the robot's last place reaches."""
+        if self.last_place == NO_PLACE:
+            return []
+        seen = reachable(self.graph(), self.last_place)
+        events: list[Event] = []
+        for pid in sorted(set(self.places) - seen):
+            events += self._delete_place(pid, "no path reaches it")
+        return events
+
+    def _confirm_here(self, pid: int, frm: int, now_s: float) -> list[Event]:
+        """Confirm place ``pid`` at the robot's position; predict, infer links, check loops."""
+        assert self.robot_xy is not None
+        p = self.params
+        x, y = self.robot_xy
+        place = self.places.get(pid)
+        if place is None:
+            place = self.places[pid] = Place(pid, x, y, True, frm)
+        place.x_m, place.y_m, place.confirmed = x, y, True
+        events: list[Event] = [PlaceConfirmedEvent(pid, x, y)]
+        if frm != NO_PLACE:
+            events += self._traversed(frm, pid)
+        for q in [q for q in self.places.values() if not q.confirmed]:
+            if math.hypot(q.x_m - x, q.y_m - y) < p.merge_distance_m:
+                events += self._delete_place(q.place_id, f"merged into place {pid}")
+        self.leg = None
+        self.current = self.last_place = pid
+        self._fix_after_s = now_s
+        scan = self._last_scan
+        if scan is not None and self._last_pose is not None:
+            heading = self._last_pose.heading_rad
+            for direction in open_directions(heading, scan, directions=p.directions, length_m=p.open_distance_m,
+                                             half_width_m=p.open_half_width_m, sample_step_m=p.sample_step_m):
+                cx, cy = x + p.place_spacing_m * math.cos(direction), y + p.place_spacing_m * math.sin(direction)
+                if any(math.hypot(o.x_m - cx, o.y_m - cy) < p.min_place_separation_m for o in self.places.values()):
+                    continue
+                new = self._new_id()
+                self.places[new] = Place(new, cx, cy, False, pid)
+                self.links[_key(pid, new)] = Link(*_key(pid, new), PREDICTED, p.confidence_initial)
+                events.append(PlacePredictedEvent(new, cx, cy, pid))
+            traversed = self.graph((TRAVERSED,), by_confidence=False)
+            dist_traversed, _ = dijkstra(traversed, pid)
+            for q in sorted(self.places.values(), key=lambda o: o.place_id):
+                if not q.confirmed or q.place_id == pid or _key(pid, q.place_id) in self.links:
+                    continue
+                d = self.distance(pid, q.place_id)
+                if d >= p.inferred_link_max_m:
+                    continue
+                direction = math.atan2(q.y_m - y, q.x_m - x)
+                if not clear_towards(heading, scan, direction, max(d - p.arrive_tolerance_m, 0.0),
+                                     half_width_m=p.open_half_width_m, sample_step_m=p.sample_step_m):
+                    continue
+                self.links[_key(pid, q.place_id)] = Link(*_key(pid, q.place_id), INFERRED, p.confidence_initial)
+                events.append(LinkInferredEvent(pid, q.place_id, d))
+                if dist_traversed.get(q.place_id, math.inf) > p.loop_closing_path_m:
+                    self.loop_queue.append((pid, q.place_id))
+        return events
+
+    def _plan(self, now_s: float) -> list[Event]:
+        """Choose the next leg: a pending loop-closing link first, else towards the nearest predicted place."""
+        source = self.last_place
+        graph = self.graph()
+        dist, prev = dijkstra(graph, source)
+        while self.loop_queue:
+            a, b = self.loop_queue[0]
+            if _key(a, b) not in self.links or a not in self.places or b not in self.places:
+                self.loop_queue.pop(0)
+                continue
+            if a == source:
+                self._start_leg((a, b), b, now_s)
+                return []
+            path = path_to(prev, source, a)
+            if len(path) < 2:
+                self.loop_queue.pop(0)
+                continue
+            self._start_leg((path[0], path[1]), b, now_s)
+            return []
+        predicted = [pid for pid, p in self.places.items() if not p.confirmed and pid in dist]
+        if not predicted:
+            events = self._prune()
+            self.complete = not any(not p.confirmed for p in self.places.values())
+            self.target = NO_PLACE
+            return events
+        goal = min(predicted, key=lambda pid: (dist[pid], pid))
+        path = path_to(prev, source, goal)
+        self._start_leg((path[0], path[1]), goal, now_s)
+        return []
+
+    def _start_leg(self, leg: tuple[int, int], target: int, now_s: float) -> None:
+        self.leg = leg
+        self.target = target
+        self._leg_start_s = now_s
+        self._blocked_since = None
+
+    def _output(self, events: list[Event], now_s: float, pose: Pose2) -> ExplorerOutput:
+        p = self.params
+        if self.leg is not None and self.robot_xy is not None:
+            goal = self.places[self.leg[1]]
+            cmd = velocity_command(
+                self.robot_xy[0], self.robot_xy[1], pose.heading_rad, goal.x_m, goal.y_m, self._last_scan,
+                max_speed_mps=p.max_speed_mps, max_turn_radps=p.max_turn_radps, heading_gain=p.heading_gain,
+                turn_in_place_rad=p.turn_in_place_rad, stop_distance_m=p.stop_distance_m,
+                slow_distance_m=p.slow_distance_m, avoid_distance_m=p.avoid_distance_m,
+                avoid_gain=p.avoid_gain, front_half_angle_rad=p.front_half_angle_rad,
+            )
+            if cmd.blocked:
+                self._blocked_since = now_s if self._blocked_since is None else self._blocked_since
+            else:
+                self._blocked_since = None
+        else:
+            cmd = Command(0.0, 0.0, False, math.inf)
+        confirmed = sum(1 for q in self.places.values() if q.confirmed)
+        status = ExplorerStatus(complete=self.complete, confirmed=confirmed,
+                                predicted=len(self.places) - confirmed,
+                                target_id=self.target if self.leg is not None else NO_PLACE)
+        diag = {"links": float(sum(1 for k in self.links.values() if k.kind != PREDICTED)),
+                "loop_queue": float(len(self.loop_queue)), "leg_age_s": now_s - self._leg_start_s
+                if self.leg is not None else 0.0}
+        return ExplorerOutput(events=tuple(events), command=cmd, status=status, diagnostics=diag)

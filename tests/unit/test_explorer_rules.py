@@ -1,0 +1,242 @@
+"""Explorer rules: prediction, confirmation, deletion, confidence, loop closing, completion."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from messages.types import Pose2
+from services.explorer import (
+    Explorer,
+    ExplorerParams,
+    LinkConfidenceEvent,
+    LinkDeletedEvent,
+    LinkInferredEvent,
+    PlaceConfirmedEvent,
+    PlaceDeletedEvent,
+    PlaceFix,
+    PlacePredictedEvent,
+    clear_towards,
+    confidence_after_failure,
+    confidence_after_traversal,
+)
+from services.explorer.core import INFERRED, PREDICTED, TRAVERSED, Link, Place
+from tests.unit._sonar_rooms import box, scan_at
+
+OPEN_ROOM = box(-4, -4, 4, 4)
+CORRIDOR = box(-4, -0.8, 4, 0.8)  # 1.6 m wide, along x
+
+
+def _pose(x, y, h=0.0):
+    return Pose2(x_m=x, y_m=y, heading_rad=h)
+
+
+def _of(events, kind):
+    return [e for e in events if isinstance(e, kind)]
+
+
+def test_confidence_rules_eqs_17_18():
+    c = 0.5
+    c = confidence_after_traversal(c, 0.5)
+    assert c == 0.75
+    assert confidence_after_traversal(c, 0.5) == 0.875
+    assert confidence_after_failure(0.75, 0.5) == 0.375
+    assert confidence_after_failure(0.375, 0.5) == 0.1875  # below 0.2: the link goes
+
+
+def test_first_step_confirms_place_zero_and_predicts_open_directions():
+    ex = Explorer()
+    out = ex.step(0.0, _pose(0.0, 0.0), scan_at(0.0, 0.0, 0.0, CORRIDOR)[0])
+    assert out.events[0] == PlaceConfirmedEvent(0, 0.0, 0.0)
+    predicted = _of(out.events, PlacePredictedEvent)
+    # only east and west are open in a 1.6 m corridor
+    assert sorted((round(e.x_m, 6), round(e.y_m, 6)) for e in predicted) == [(-1.0, 0.0), (1.0, 0.0)]
+    assert all(e.parent_id == 0 for e in predicted)
+    assert out.status.predicted == 2 and out.status.confirmed == 1 and not out.status.complete
+    assert ex.leg is not None and ex.leg[0] == 0
+
+
+def test_open_room_predicts_the_four_axes_and_diagonals_only_where_room_is_left():
+    ex = Explorer()
+    out = ex.step(0.0, _pose(0.0, 0.0), scan_at(0.0, 0.0, 0.0, OPEN_ROOM)[0])
+    pts = {(round(e.x_m, 3), round(e.y_m, 3)) for e in _of(out.events, PlacePredictedEvent)}
+    # a diagonal candidate is 0.765 m from its axis neighbours: within the 0.8 m separation
+    assert pts == {(1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0)}
+    walls = box(-4, -0.6, 4, 4)  # south closed at 0.6 m: the south diagonals have no axis neighbour
+    ex = Explorer(ExplorerParams(open_half_width_m=0.2))
+    out = ex.step(0.0, _pose(0.0, 0.0), scan_at(0.0, 0.0, 0.0, walls)[0])
+    pts = {(round(e.x_m, 3), round(e.y_m, 3)) for e in _of(out.events, PlacePredictedEvent)}
+    assert pts == {(1.0, 0.0), (0.0, 1.0), (-1.0, 0.0)}
+
+
+def test_free_space_classifier_needs_seen_free_space():
+    scan = scan_at(0.0, 0.0, 0.0, CORRIDOR)[0]
+    assert clear_towards(0.0, scan, 0.0, 1.5, half_width_m=0.2, sample_step_m=0.1)
+    assert not clear_towards(0.0, scan, math.pi / 2, 1.5, half_width_m=0.2, sample_step_m=0.1)
+    assert clear_towards(0.0, scan, math.pi / 2, 0.3, half_width_m=0.2, sample_step_m=0.1)
+    # heading does not matter: the scan is placed by the compass heading
+    turned = scan_at(0.0, 0.0, 1.0, CORRIDOR)[0]
+    assert clear_towards(1.0, turned, math.pi, 1.5, half_width_m=0.2, sample_step_m=0.1)
+    assert not clear_towards(1.0, turned, -math.pi / 2, 1.5, half_width_m=0.2, sample_step_m=0.1)
+
+
+def test_predicted_place_confirmed_when_reached_at_the_robot_position():
+    ex = Explorer()
+    ex.step(0.0, _pose(0.0, 0.0), scan_at(0.0, 0.0, 0.0, CORRIDOR)[0])
+    target = ex.places[ex.leg[1]]
+    x, y = target.x_m + 0.1, target.y_m - 0.05  # within the 0.25 m tolerance
+    out = ex.step(5.0, _pose(x, y), scan_at(x, y, 0.0, CORRIDOR)[0])
+    conf = _of(out.events, PlaceConfirmedEvent)
+    assert conf == [PlaceConfirmedEvent(target.place_id, pytest.approx(x), pytest.approx(y))]
+    assert LinkConfidenceEvent(0, target.place_id, 0.5) in out.events
+    assert ex.links[tuple(sorted((0, target.place_id)))].kind == TRAVERSED
+    # the next predicted place lies 1 m further along the corridor, not back near place 0
+    new = _of(out.events, PlacePredictedEvent)
+    assert [(round(e.x_m - x, 6), round(e.y_m - y, 6)) for e in new] == [(round(math.copysign(1.0, target.x_m), 6), 0.0)]
+
+
+def test_predicted_place_deleted_when_the_leg_times_out():
+    p = ExplorerParams(leg_timeout_base_s=10.0, leg_timeout_per_m_s=5.0)
+    ex = Explorer(p)
+    ex.step(0.0, _pose(0.0, 0.0), scan_at(0.0, 0.0, 0.0, CORRIDOR)[0])
+    target = ex.leg[1]
+    assert _of(ex.step(14.9, _pose(0.0, 0.0)).events, PlaceDeletedEvent) == []
+    out = ex.step(15.1, _pose(0.0, 0.0))  # 10 s + 5 s/m * 1 m
+    deleted = _of(out.events, PlaceDeletedEvent)
+    assert [e.place_id for e in deleted] == [target] and "timeout" in deleted[0].reason
+    assert target not in ex.places
+    assert ex.leg is not None and ex.leg[1] != target  # on to the other predicted place
+
+
+def test_predicted_place_deleted_when_blocked():
+    p = ExplorerParams(blocked_timeout_s=2.0)
+    ex = Explorer(p)
+    walls = box(-4, -0.8, 0.25, 0.8)  # wall 0.25 m east of the robot
+    scan = scan_at(0.0, 0.0, 0.0, walls)[0]
+    ex.step(0.0, _pose(0.0, 0.0), scan)
+    ex.leg, ex.target = (0, ex.places[1].place_id), 1
+    ex.places[1].x_m, ex.places[1].y_m = 1.0, 0.0
+    ex._start_leg((0, 1), 1, 0.0)
+    out = ex.step(0.1, _pose(0.0, 0.0), scan)
+    assert out.command.blocked and out.command.v_mps == 0.0
+    ex.step(1.0, _pose(0.0, 0.0), scan)
+    out = ex.step(2.2, _pose(0.0, 0.0), scan)
+    assert [e.place_id for e in _of(out.events, PlaceDeletedEvent)] == [1]
+    assert "blocked" in _of(out.events, PlaceDeletedEvent)[0].reason
+
+
+def _chain_explorer(params=None) -> Explorer:
+    """Confirmed places 0-1-2 on a line 1 m apart, traversed links, robot at 2; nothing predicted."""
+    ex = Explorer(params)
+    ex.step(0.0, _pose(2.0, 0.0), scan_at(2.0, 0.0, 0.0, OPEN_ROOM)[0])  # confirms 0 and predicts
+    for pid in [k for k, q in ex.places.items() if not q.confirmed]:
+        ex._delete_place(pid, "test setup")
+    ex.places = {0: Place(0, 0.0, 0.0, True, -1), 1: Place(1, 1.0, 0.0, True, 0), 2: Place(2, 2.0, 0.0, True, 1)}
+    ex.links = {(0, 1): Link(0, 1, TRAVERSED, 0.5), (1, 2): Link(1, 2, TRAVERSED, 0.5)}
+    ex._next_id = 3
+    ex.current = ex.last_place = 2
+    ex.leg = None
+    ex.complete = False
+    return ex
+
+
+def test_exploration_complete_without_predicted_places():
+    ex = _chain_explorer()
+    out = ex.step(1.0, _pose(2.0, 0.0))
+    assert out.status.complete and out.status.predicted == 0 and out.status.target_id == -1
+    assert out.command.v_mps == 0.0 and out.command.omega_radps == 0.0
+
+
+def test_traversal_raises_and_failure_lowers_confidence_then_deletes_link_and_unreachable_places():
+    ex = _chain_explorer(ExplorerParams(leg_timeout_base_s=10.0, leg_timeout_per_m_s=0.0))
+    ex.places[3] = Place(3, -1.0, 0.0, False, 0)
+    ex.links[(0, 3)] = Link(0, 3, PREDICTED, 0.5)
+    ex.step(0.0, _pose(2.0, 0.0))
+    assert ex.leg == (2, 1) and ex.target == 3
+    # the recognizer reports place 1: the leg succeeded, Eq. 17
+    out = ex.step(1.0, _pose(1.05, 0.0), fix=PlaceFix(1, 0.05, 0.0, 1.0))
+    assert LinkConfidenceEvent(2, 1, 0.75) in out.events
+    assert ex.leg == (1, 0)
+    # the robot never gets to place 0: timeout, Eq. 18 (0.5 -> 0.25), then again (0.25 -> 0.125)
+    out = ex.step(11.5, _pose(1.05, 0.0))
+    assert LinkConfidenceEvent(1, 0, 0.25) in out.events
+    assert ex.leg == (1, 0)
+    out = ex.step(22.0, _pose(1.05, 0.0))
+    assert LinkConfidenceEvent(1, 0, 0.125) in out.events
+    deleted_links = _of(out.events, LinkDeletedEvent)
+    assert [(e.from_id, e.to_id) for e in deleted_links] == [(1, 0)]
+    # 0 and the predicted 3 hang off the deleted link: no path reaches them
+    assert sorted(e.place_id for e in _of(out.events, PlaceDeletedEvent)) == [0, 3]
+    assert set(ex.places) == {1, 2}
+    assert out.status.complete
+
+
+def test_arriving_at_another_place_is_a_failed_traversal():
+    ex = _chain_explorer()
+    ex.places[3] = Place(3, 3.0, 1.0, True, 2)
+    ex.links[(2, 3)] = Link(2, 3, TRAVERSED, 0.5)
+    ex.places[4] = Place(4, -1.0, 0.0, False, 0)
+    ex.links[(0, 4)] = Link(0, 4, PREDICTED, 0.5)
+    ex.step(0.0, _pose(2.0, 0.0))
+    assert ex.leg == (2, 1)
+    out = ex.step(1.0, _pose(3.0, 1.0), fix=PlaceFix(3, 0.0, 0.0, 1.0))  # ended up at 3 instead
+    assert LinkConfidenceEvent(2, 1, 0.25) in out.events  # Eq. 18 on the planned link
+    assert LinkConfidenceEvent(2, 3, 0.75) in out.events  # Eq. 17 on the one travelled
+    assert ex.last_place == 3
+
+
+def test_loop_closing_goes_directly_when_the_traversed_path_is_long():
+    # a U of traversed places 0-1-2-3-4; the predicted place 5 at (0, 1) closes it next to 0
+    ex = Explorer()
+    ex.step(0.0, _pose(1.0, 1.0), scan_at(1.0, 1.0, 0.0, OPEN_ROOM)[0])
+    ex.places = {0: Place(0, 0.0, 0.0, True, -1), 1: Place(1, 1.0, 0.0, True, 0), 2: Place(2, 2.0, 0.0, True, 1),
+                 3: Place(3, 2.0, 1.0, True, 2), 4: Place(4, 1.0, 1.0, True, 3), 5: Place(5, 0.0, 1.0, False, 4)}
+    ex.links = {(0, 1): Link(0, 1, TRAVERSED, 0.5), (1, 2): Link(1, 2, TRAVERSED, 0.5),
+                (2, 3): Link(2, 3, TRAVERSED, 0.5), (3, 4): Link(3, 4, TRAVERSED, 0.5),
+                (4, 5): Link(4, 5, PREDICTED, 0.5)}
+    ex._next_id, ex.current, ex.last_place, ex.leg, ex.loop_queue = 6, 4, 4, None, []
+    ex.step(1.0, _pose(1.0, 1.0), scan_at(1.0, 1.0, 0.0, OPEN_ROOM)[0])
+    assert ex.leg == (4, 5)
+    out = ex.step(5.0, _pose(0.0, 1.0), scan_at(0.0, 1.0, 0.0, OPEN_ROOM)[0])
+    assert PlaceConfirmedEvent(5, 0.0, 1.0) in out.events
+    inferred = {(e.from_id, e.to_id): e.d_m for e in _of(out.events, LinkInferredEvent)}
+    # within 2 m of 5: 0 (1 m, traversed path 5-4-3-2-1-0 = 5 m) and 1 (1.41 m, path 4 m); 3 is 2 m away
+    assert inferred == {(5, 0): pytest.approx(1.0), (5, 1): pytest.approx(math.sqrt(2))}
+    assert ex.loop_queue[1:] == [(5, 1)]
+    assert ex.leg == (5, 0)  # straight to 0, before exploring further
+    assert ex.links[(0, 5)].kind == INFERRED
+    # arriving at 0 makes the link traversed and takes the next loop-closing link
+    out = ex.step(10.0, _pose(0.0, 0.02), fix=PlaceFix(0, 0.0, 0.02, 10.0))
+    assert LinkConfidenceEvent(5, 0, 0.75) in out.events
+    assert ex.links[(0, 5)].kind == TRAVERSED
+    assert ex.leg == (0, 5) and ex.loop_queue == [(5, 1)]
+
+
+def test_no_loop_closing_when_the_traversed_path_is_short():
+    ex = Explorer()
+    ex.step(0.0, _pose(1.0, 1.0), scan_at(1.0, 1.0, 0.0, OPEN_ROOM)[0])
+    ex.places = {0: Place(0, 0.0, 0.0, True, -1), 1: Place(1, 1.0, 0.0, True, 0), 2: Place(2, 1.0, 1.0, False, 1)}
+    ex.links = {(0, 1): Link(0, 1, TRAVERSED, 0.5), (1, 2): Link(1, 2, PREDICTED, 0.5)}
+    ex._next_id, ex.current, ex.last_place, ex.leg, ex.loop_queue = 3, 1, 1, None, []
+    ex.step(1.0, _pose(1.0, 0.0), scan_at(1.0, 0.0, 0.0, OPEN_ROOM)[0])
+    out = ex.step(5.0, _pose(1.0, 1.0), scan_at(1.0, 1.0, 0.0, OPEN_ROOM)[0])
+    assert [(e.from_id, e.to_id) for e in _of(out.events, LinkInferredEvent)] == [(2, 0)]
+    assert ex.loop_queue == []  # 2-1-0 is 2 m of traversed path
+
+
+def test_no_inferred_link_through_a_wall():
+    walls = OPEN_ROOM + [(-1.0, 0.5, 1.0, 0.5)]  # wall between y=0 and y=1 west of x=1
+    ex = Explorer()
+    ex.step(0.0, _pose(1.5, 1.0), scan_at(1.5, 1.0, 0.0, walls)[0])
+    ex.places = {0: Place(0, 0.0, 0.0, True, -1), 1: Place(1, 1.5, 0.0, True, 0), 2: Place(2, 1.5, 1.0, True, 1),
+                 3: Place(3, 0.5, 1.0, False, 2)}
+    ex.links = {(0, 1): Link(0, 1, TRAVERSED, 0.5), (1, 2): Link(1, 2, TRAVERSED, 0.5),
+                (2, 3): Link(2, 3, PREDICTED, 0.5)}
+    ex._next_id, ex.current, ex.last_place, ex.leg, ex.loop_queue = 4, 2, 2, None, []
+    ex.step(1.0, _pose(1.5, 1.0), scan_at(1.5, 1.0, 0.0, walls)[0])
+    out = ex.step(5.0, _pose(0.5, 1.0), scan_at(0.5, 1.0, 0.0, walls)[0])
+    assert PlaceConfirmedEvent(3, 0.5, 1.0) in out.events
+    inferred = [(e.from_id, e.to_id) for e in _of(out.events, LinkInferredEvent)]
+    assert (3, 0) not in inferred  # 0 is 1.1 m away, behind the wall
