@@ -30,7 +30,7 @@ class ExplorerParams:
     confidence_initial: float = 0.5  # confidence of a new link
     confidence_rate: float = 0.5  # lambda of Eqs. 17-18
     confidence_min: float = 0.2  # a link is deleted when its confidence falls below this
-    arrive_tolerance_m: float = 0.25  # the robot has reached a place within this distance of it
+    arrive_tolerance_m: float = 0.1  # the robot has reached a place within this distance of it
     leg_timeout_base_s: float = 20.0  # a leg fails after this ...
     leg_timeout_per_m_s: float = 20.0  # ... plus this per metre of its length
     blocked_timeout_s: float = 5.0  # a leg fails after the controller is blocked this long

@@ -86,7 +86,7 @@ def test_predicted_place_confirmed_when_reached_at_the_robot_position():
     ex = Explorer()
     ex.step(0.0, _pose(0.0, 0.0), scan_at(0.0, 0.0, 0.0, CORRIDOR)[0])
     target = ex.places[ex.leg[1]]
-    x, y = target.x_m + 0.1, target.y_m - 0.05  # within the 0.25 m tolerance
+    x, y = target.x_m + 0.06, target.y_m - 0.05  # within the 0.1 m tolerance
     out = ex.step(5.0, _pose(x, y), scan_at(x, y, 0.0, CORRIDOR)[0])
     conf = _of(out.events, PlaceConfirmedEvent)
     assert conf == [PlaceConfirmedEvent(target.place_id, pytest.approx(x), pytest.approx(y))]
