@@ -25,7 +25,7 @@ class ServiceSpec(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     module: str  # run as `python -m <module>`
     inputs: list[str] = []  # names of messages.topics functions the service subscribes to
     outputs: list[str] = []  # names of messages.topics functions it publishes or serves
-    args: list[str] = []  # extra command-line arguments; {world} {seed} {out} {max_sim_time} expand
+    args: list[str] = []  # extra arguments; {world} {seed} {out} {max_sim_time} {viewer} expand
     restart: RestartPolicy = RestartPolicy()
     required: bool = True  # the run fails when a required service dies and cannot be restarted
 
@@ -86,8 +86,8 @@ def check_graph(graph: ProcessGraph) -> list[str]:
 
 
 def expand_args(spec: ServiceSpec, values: dict[str, str]) -> list[str]:
-    """The service's extra arguments with ``{name}`` placeholders filled in."""
+    """The service's extra arguments with ``{name}`` placeholders filled in (empty results dropped)."""
     try:
-        return [a.format(**values) for a in spec.args]
+        return [arg for a in spec.args if (arg := a.format(**values))]
     except KeyError as e:
         raise GraphError(f"{spec.name}: unknown placeholder {e} in args") from None

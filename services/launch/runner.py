@@ -34,13 +34,17 @@ def _free_port() -> int:
 
 def resolve_world(world: str) -> str:
     """A built-in world's name, or the absolute path of a world file."""
-    from sim.world import BUILTIN_WORLDS
+    from sim.world import WorldError, builtin_worlds, load_world
 
-    if world in BUILTIN_WORLDS:
+    if world in builtin_worlds():
         return world
     path = Path(world)
     if not path.is_file():
-        raise RunError(f"world {world!r} is neither a built-in world ({', '.join(BUILTIN_WORLDS)}) nor a file")
+        raise RunError(f"world {world!r} is neither a built-in world ({', '.join(builtin_worlds())}) nor a file")
+    try:
+        load_world(path)  # a bad world file is reported here, before any process starts
+    except WorldError as e:
+        raise RunError(str(e)) from e
     return str(path.resolve())
 
 
@@ -62,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
         raise RunError(f"cannot listen on {endpoint} ({e}); is another run using it? Try --port 0") from e
     stop = shutdown_event()
     values = {"world": world, "seed": str(args.seed), "out": str(out), "max_sim_time": f"{args.max_sim_time:g}",
-              "viewer": "--viewer" if args.viewer else "--no-viewer"}
+              "viewer": "--viewer" if args.viewer else ""}
     common = ["--connect", endpoint, "--listen", "tcp/127.0.0.1:0", "--robot", robot]
     events: list[str] = []
 
