@@ -63,9 +63,8 @@ def point_segment_distance(points: np.ndarray, segments: np.ndarray) -> np.ndarr
     len2 = ex * ex + ey * ey
     wx = p[:, 0:1] - ax
     wy = p[:, 1:2] - ay
-    with np.errstate(invalid="ignore", divide="ignore"):
-        t = np.where(len2 > 0.0, (wx * ex + wy * ey) / np.where(len2 > 0.0, len2, 1.0), 0.0)
-    t = np.clip(t, 0.0, 1.0)
+    # a degenerate segment (a point) has ex = ey = 0, hence t = 0: the distance to that point
+    t = np.clip((wx * ex + wy * ey) / np.where(len2 > 0.0, len2, 1.0), 0.0, 1.0)
     return np.hypot(wx - t * ex, wy - t * ey)
 
 

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.geometry import segment_segment_distance, wrap_angle
+from sim.geometry import point_segment_distance, segment_segment_distance, wrap_angle
 from sim.world import ROBOT_RADIUS_M, World
 
 Pose = tuple[float, float, float]  # x_m, y_m, heading_rad
@@ -66,7 +66,8 @@ def move(pose: Pose, v_mps: float, omega_radps: float, dt_s: float, world: World
         return (x, y, new_th), Motion(0.0, dth, False)
     reach = chord + params.radius_m
     near = world.walls_near(x, y, _NEAR_M) if reach < _NEAR_M else world.walls
-    if near.shape[0] == 0 or _clear(x, y, nx, ny, near, params.radius_m):
+    if near.shape[0] == 0 or point_segment_distance(np.array(((x, y),)), near).min() >= reach \
+            or _clear(x, y, nx, ny, near, params.radius_m):  # the first test: the whole disc sweep is clear
         return (nx, ny, new_th), Motion(math.copysign(chord, v), dth, False)
     lo, hi = 0.0, 1.0  # the largest fraction of the step that stays clear
     for _ in range(_BISECTIONS):

@@ -56,7 +56,7 @@ class OdometryModel:
         if dist > 0.0 and u < p.slip_probability:
             meas_d += p.slip_distance_fraction * ds * z[3]
             meas_r += p.slip_rotation_rad * z[3]
-        return meas_d, meas_r
+        return float(meas_d), float(meas_r)
 
 
 # -- compass -----------------------------------------------------------------------------------------
@@ -93,7 +93,7 @@ class CompassModel:
     def measure(self, pose: Pose, rng: np.random.Generator) -> float:
         """Heading reported at ``pose``, in (-pi, pi]; draws 1 normal."""
         z = rng.standard_normal()
-        return wrap_angle(pose[2] + self.deviation_rad(pose[0], pose[1]) + self.params.noise_rad * z)
+        return wrap_angle(float(pose[2] + self.deviation_rad(pose[0], pose[1]) + self.params.noise_rad * z))
 
 
 # -- sonar -------------------------------------------------------------------------------------------

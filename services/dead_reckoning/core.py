@@ -85,7 +85,8 @@ def step(state: DrState, msg: OdometryStep | CompassReading,
     ``h_{k-1}`` and ``h_k``; the heading is the compass's own. Raw odometry integrates the wheels'
     rotation instead. An odometry step is paired with the compass reading of the same stamp; when
     that reading never comes, the heading is predicted as ``h_{k-1}`` plus the wheels' rotation.
-    The frame starts at the origin with the first compass heading.
+    The frame starts at the origin with the first compass heading. Until the first odometry step,
+    every repeat of the first compass reading repeats the initial pose (the start of a lockstep run).
     """
     if isinstance(msg, CompassReading):
         return _on_compass(state, msg, params)
@@ -98,7 +99,13 @@ def _on_compass(state: DrState, msg: CompassReading,
                 params: DeadReckoningParams) -> tuple[DrState, list[DeadReckonedPose]]:
     stream, verdict = track(state.compass, msg.seq, params.missing_memory)
     if verdict == DUPLICATE:
-        return replace(state, compass=stream), []
+        state = replace(state, compass=stream)
+        if state.initialised and state.steps == 0:
+            # start phase: sensor_sim repeats tick 0 until a command comes; so does the first pose,
+            # for a commander that keys on dead-reckoned poses
+            state, pose = _emit(state, state.last_stamp)
+            return state, [pose]
+        return state, []
     headings = tuple(sorted(state.headings + ((_us(msg.stamp), msg.heading_rad),)))[-params.compass_memory:]
     state = replace(state, compass=stream, headings=headings)
     out: list[DeadReckonedPose] = []

@@ -83,7 +83,7 @@ def step(state: SimState, command: tuple[float, float], model: SimModel,
     generator and the same commands give the same frames.
     """
     p = model.params
-    pose, motion = move(state.pose, command[0], command[1], p.dt_s, model.world, p.robot)
+    pose, motion = move(state.pose, float(command[0]), float(command[1]), p.dt_s, model.world, p.robot)
     dist, rot = model.odometry.measure(motion, rng)
     tick = state.tick + 1
     stamp = tick * p.dt_s

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from messages.codec import codec
 from messages.types import CompassReading, OdometryStep
 from services.dead_reckoning import core as dr
 from services.sensor_sim import core as sim
@@ -47,6 +48,10 @@ def test_frames_ticks_and_seqs():
     travelled = sum(abs(f.odometry.distance_m) for f in frames[1:])
     assert len(scans) - 1 == pytest.approx(travelled / 0.5, abs=1.5)  # one scan every 0.5 m
     assert state.collisions == 0 and state.tick == 200
+    for f in frames[:20]:  # every message encodes as it is (plain floats, no numpy scalars)
+        for msg in (f.truth, f.compass, f.odometry, f.sonar):
+            if msg is not None:
+                assert codec(type(msg)).decode(codec(type(msg)).encode(msg)) == msg
 
 
 def test_sonar_at_a_set_rate():
@@ -118,6 +123,7 @@ def test_dr_counts_gaps_duplicates_and_reordering():
     msgs += [_cmp(3, 0.0), _odo(2, 0.1)]  # ...which the next reading shows
     msgs += [_cmp(4, 0.0), _cmp(5, 0.0), _odo(4, 0.1)]  # odometry seq 3 goes missing
     state, out = _feed(dr.DrState(), msgs)
+    assert [p.steps for p in out[:3]] == [0, 0, 0]  # the start phase repeats the initial pose
     assert state.compass.duplicates == 2 and state.compass.gaps == 1
     assert state.odometry.gaps == 1 and out[-1].gaps == 2 and out[-1].steps == 4
     assert out[-1].compass.x_m == pytest.approx(0.4)

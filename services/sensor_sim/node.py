@@ -1,0 +1,266 @@
+"""sensor_sim on the bus: the simulated clock, velocity commands in, sensor frames and ground truth out."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import zenoh
+
+from messages import topics
+from messages.codec import codec
+from messages.types import CompassReading, OdometryStep, SonarScan, TruthPose, VelocityCommand
+from services.runtime import Node
+from services.sensor_sim import core
+from sim.world import World, WorldError, load_world
+
+SERVICE = "sensor_sim"
+_MSGPACK = zenoh.Encoding("application/msgpack")
+log = logging.getLogger("relaxmap.sensor_sim")
+
+
+@dataclass(frozen=True)
+class SensorSimNodeParams:
+    seed: int = 0  # seed of the one random generator behind every sensor
+    lockstep: bool = True  # True: tick k+1 only after the command for tick k; False: real-time factor
+    rtf: float = 1.0  # real-time factor when not in lockstep (0: as fast as possible)
+    lockstep_timeout_s: float = 2.0  # wall time to wait for a tick's command before moving on stopped
+    start_repeat_s: float = 0.2  # wall period of tick 0's frame until the first command arrives
+    cmd_timeout_s: float = 1.0  # real-time factor mode: stop the robot when commands are older (wall)
+    max_sim_time_s: float | None = None  # end the run at this simulated time
+    duration_s: float | None = None  # end the run after this wall time
+    linger_s: float = 1.0  # wall time to stay on the bus after a bounded run, so the last frame is out
+    sim: core.SensorSimParams = field(default_factory=core.SensorSimParams)  # the simulation itself
+
+
+def run(session: zenoh.Session, world: World, params: SensorSimNodeParams, *,
+        robot: str = topics.DEFAULT_ROBOT, stop: threading.Event | None = None) -> core.SimState:
+    """Simulate until ``stop``, the simulated or the wall time limit; return the final state.
+
+    A run starts when the first velocity command arrives: until then tick 0 is published every
+    ``start_repeat_s``. Then, in lockstep, tick k+1 is computed only once the command answering tick
+    k is in (after ``lockstep_timeout_s`` without it, the robot is stopped for that tick and the
+    timeout counted in health); with a real-time factor, ticks follow the wall clock and use the
+    latest command. Sensor messages are published lossless (congestion control ``block``): when a
+    subscriber cannot keep up, the simulation waits for it instead of dropping messages.
+    """
+    stop = stop or threading.Event()
+    with Node(session, SERVICE, robot=robot) as node:
+        out = _Outputs(node, robot)
+        cmds = _Commands()
+        node.detail.update(tick=0, sim_time_s=0.0, started=0, lockstep=float(params.lockstep), rtf=params.rtf,
+                           lockstep_timeouts=0, stale_commands=0, commands=0, collisions=0, scans=0,
+                           rtf_achieved=0.0, seed=params.seed, published=0)
+        node.subscribe(topics.cmd_velocity(robot), VelocityCommand, cmds.on_cmd_velocity)
+        try:
+            return _simulate(node, core.SimModel(world, params.sim), params, cmds, out, stop)
+        finally:
+            out.undeclare()
+
+
+def _simulate(node: Node, model: core.SimModel, params: SensorSimNodeParams, cmds: _Commands,
+              out: _Outputs, stop: threading.Event) -> core.SimState:
+    """The clock: the start phase, then one tick per command (lockstep) or per wall period."""
+    rng = np.random.default_rng(params.seed)
+    dt = params.sim.dt_s
+    state, frame = core.start(model, rng)
+    node.announce()
+    wall_end = time.monotonic() + params.duration_s if params.duration_s else math.inf
+    log.info("%s: world %s, seed %d, %s, waiting for the first command on %s", SERVICE, model.world.name,
+             params.seed, "lockstep" if params.lockstep else f"real-time factor {params.rtf:g}",
+             topics.cmd_velocity(node.robot))
+
+    # -- start: repeat tick 0 until a command arrives -------------------------------------------------
+    while not stop.is_set() and time.monotonic() < wall_end and not cmds.started:
+        out.publish(frame)
+        deadline = time.monotonic() + params.start_repeat_s
+        while not cmds.started and not stop.is_set() and (now := time.monotonic()) < deadline:
+            node.spin_once(deadline - now)
+    t_run = time.monotonic()
+    node.detail["started"] = 1
+    last_cmd_wall = time.monotonic()
+
+    # -- run --------------------------------------------------------------------------------------------
+    while not stop.is_set() and cmds.started:
+        now = time.monotonic()
+        if now >= wall_end:
+            break
+        if params.lockstep:
+            cmd = cmds.take(state.tick)
+            if cmd is None:
+                waited = now - last_cmd_wall
+                if waited < params.lockstep_timeout_s:
+                    node.spin_once(min(params.lockstep_timeout_s - waited, 0.1))
+                    continue
+                cmds.timeouts += 1
+                log.warning("%s: no command for tick %d within %.1f s: the robot stops for one tick",
+                            SERVICE, state.tick, params.lockstep_timeout_s)
+                cmd = (0.0, 0.0)
+            last_cmd_wall = time.monotonic()
+        else:
+            while node.spin_once(0):
+                pass
+            if params.rtf > 0:
+                due = t_run + (state.tick + 1) * dt / params.rtf
+                while (now := time.monotonic()) < due and not stop.is_set():
+                    node.spin_once(due - now)
+            fresh = time.monotonic() - cmds.latest_wall < params.cmd_timeout_s
+            cmd = cmds.latest if fresh else (0.0, 0.0)
+        state, frame = core.step(state, cmd, model, rng)
+        cmds.tick = state.tick
+        out.publish(frame)
+        _update_detail(node, state, cmds, out, dt, time.monotonic() - t_run)
+        if params.max_sim_time_s is not None and frame.truth.stamp >= params.max_sim_time_s - 1e-9:
+            log.info("%s: simulated time %.1f s reached", SERVICE, frame.truth.stamp)
+            break
+    _update_detail(node, state, cmds, out, dt, time.monotonic() - t_run)
+    # stay a moment: zenoh drops what is still queued when the session closes
+    linger_end = time.monotonic() + params.linger_s
+    while not stop.is_set() and (now := time.monotonic()) < linger_end:
+        node.spin_once(linger_end - now)
+    log.info("%s: %d ticks, %.1f s simulated, %d collisions, %d lockstep timeouts", SERVICE, state.tick,
+             state.tick * dt, state.collisions, cmds.timeouts)
+    return state
+
+
+class _Outputs:
+    """The four sensor publishers, lossless; counts what they publish."""
+
+    def __init__(self, node: Node, robot: str) -> None:
+        def declare(key: str) -> zenoh.Publisher:
+            return node.session.declare_publisher(key, encoding=_MSGPACK, congestion_control=zenoh.CongestionControl.BLOCK)
+
+        self.count = 0
+        self._truth = declare(topics.truth_pose(robot))
+        self._compass = declare(topics.compass(robot))
+        self._odometry = declare(topics.odometry(robot))
+        self._sonar = declare(topics.sonar(robot))
+        self._enc = (codec(TruthPose), codec(CompassReading), codec(OdometryStep), codec(SonarScan))
+
+    def publish(self, frame: core.Frame) -> None:
+        """Truth first (a scripted commander may key on it); compass before odometry, because dead
+        reckoning pairs a step with the compass reading of its end."""
+        truth, compass, odometry, sonar = self._enc
+        self._truth.put(truth.encode(frame.truth))
+        self._compass.put(compass.encode(frame.compass))
+        self.count += 2
+        if frame.odometry is not None:
+            self._odometry.put(odometry.encode(frame.odometry))
+            self.count += 1
+        if frame.sonar is not None:
+            self._sonar.put(sonar.encode(frame.sonar))
+            self.count += 1
+
+    def undeclare(self) -> None:
+        for pub in (self._truth, self._compass, self._odometry, self._sonar):
+            try:
+                pub.undeclare()
+            except zenoh.ZError:
+                pass
+
+
+class _Commands:
+    """Velocity commands received: by tick (lockstep) and the latest one (real-time factor)."""
+
+    def __init__(self) -> None:
+        self.tick = 0  # the tick whose command is awaited
+        self.by_tick: dict[int, tuple[float, float]] = {}
+        self.latest = (0.0, 0.0)
+        self.latest_wall = -math.inf
+        self.started = False
+        self.count = 0
+        self.stale = 0
+        self.timeouts = 0
+
+    def on_cmd_velocity(self, msg: VelocityCommand) -> None:
+        self.count += 1
+        self.started = True
+        self.latest = (msg.v_mps, msg.omega_radps)
+        self.latest_wall = time.monotonic()
+        if msg.tick < self.tick:
+            self.stale += 1
+        elif msg.tick < self.tick + 10_000:  # far-future ticks are nonsense: never stored
+            self.by_tick[msg.tick] = self.latest
+
+    def take(self, tick: int) -> tuple[float, float] | None:
+        """The command answering ``tick``, if it is in."""
+        return self.by_tick.pop(tick, None)
+
+
+def _update_detail(node: Node, state: core.SimState, cmds: _Commands, out: _Outputs, dt: float,
+                   wall_s: float) -> None:
+    d = node.detail
+    d["published"] = out.count
+    d["tick"] = state.tick
+    d["sim_time_s"] = state.tick * dt
+    d["collisions"] = state.collisions
+    d["scans"] = state.scans
+    d["commands"] = cmds.count
+    d["stale_commands"] = cmds.stale
+    d["lockstep_timeouts"] = cmds.timeouts
+    d["rtf_achieved"] = state.tick * dt / wall_s if wall_s > 0 else 0.0
+
+
+# -- command line -----------------------------------------------------------------------------------------
+
+
+def _world_arg(text: str) -> World:
+    try:
+        return load_world(text)
+    except WorldError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _nonneg(text: str) -> float:
+    value = float(text)
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text!r}")
+    return value
+
+
+def _positive(text: str) -> float:
+    value = _nonneg(text)
+    if value == 0:
+        raise argparse.ArgumentTypeError("must be > 0")
+    return value
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--world", type=_world_arg, default="orebro-office",
+                        help="built-in world name, JSON world file or ROS map .yaml (default: orebro-office)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of every random draw (default 0)")
+    clock = parser.add_mutually_exclusive_group()
+    clock.add_argument("--lockstep", dest="rtf", action="store_const", const=None,
+                       help="tick k+1 starts once the command for tick k is in (the default)")
+    clock.add_argument("--rtf", type=_nonneg, metavar="FACTOR",
+                       help="real-time factor instead of lockstep: 1 real time, 10 ten times faster, "
+                            "0 as fast as possible")
+    parser.add_argument("--dt-s", type=_positive, default=0.1, help="simulated time per tick (default 0.1)")
+    parser.add_argument("--sonar-every-m", type=_nonneg, default=0.5,
+                        help="sonar scan after this much travel (0: never by distance; default 0.5)")
+    parser.add_argument("--sonar-period-s", type=_nonneg, default=0.0,
+                        help="sonar scan at this simulated period as well (0: off, the default)")
+    parser.add_argument("--lockstep-timeout-s", type=_positive, default=2.0,
+                        help="wall time to wait for a tick's command before stopping the robot for that tick")
+    parser.add_argument("--max-sim-time", type=_positive, default=None, metavar="S",
+                        help="end the run at this simulated time (seconds)")
+    parser.add_argument("--duration-s", type=_positive, default=None, help="end the run after this wall time")
+
+
+def params_from_args(args: argparse.Namespace) -> SensorSimNodeParams:
+    sim = core.SensorSimParams(dt_s=args.dt_s, sonar_every_m=args.sonar_every_m, sonar_period_s=args.sonar_period_s)
+    return SensorSimNodeParams(seed=args.seed, lockstep=args.rtf is None,
+                               rtf=args.rtf if args.rtf is not None else 1.0,
+                               lockstep_timeout_s=args.lockstep_timeout_s, max_sim_time_s=args.max_sim_time,
+                               duration_s=args.duration_s, sim=sim)
+
+
+def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.Event) -> None:
+    """What ``python -m services.sensor_sim`` runs once the session is open."""
+    world = args.world if isinstance(args.world, World) else _world_arg(args.world)
+    run(session, world, params_from_args(args), robot=args.robot, stop=stop)
