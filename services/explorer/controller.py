@@ -7,11 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from messages.types import SonarScan
-
-
-def _wrap_angle(a):
-    """Wrap angles to [-pi, pi)."""
-    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
+from sim.geometry import wrap_angle
 
 
 @dataclass(frozen=True)
@@ -52,14 +48,14 @@ def velocity_command(x_m: float, y_m: float, heading_rad: float, target_x_m: flo
     """
     dx, dy = target_x_m - x_m, target_y_m - y_m
     dist = float(np.hypot(dx, dy))
-    err = float(_wrap_angle(np.arctan2(dy, dx) - heading_rad)) if dist > 0.0 else 0.0
+    err = float(wrap_angle(np.arctan2(dy, dx) - heading_rad)) if dist > 0.0 else 0.0
     omega = heading_gain * err
     v = 0.0 if abs(err) > turn_in_place_rad else max_speed_mps * max(0.0, np.cos(err))
     v = min(v, dist)
     front = float("inf")
     blocked = False
     if scan is not None and len(scan.ranges_m):
-        angles = _wrap_angle(np.asarray(scan.angles_rad, dtype=float))
+        angles = wrap_angle(np.asarray(scan.angles_rad, dtype=float))
         ranges = np.asarray(scan.ranges_m, dtype=float)
         in_front = np.abs(angles) <= front_half_angle_rad
         if in_front.any():
@@ -99,7 +95,7 @@ def clear_towards(heading_rad: float, scan: SonarScan, direction_rad: float, len
     px, py = (a * cos_d - c * sin_d).ravel(), (a * sin_d + c * cos_d).ravel()
     dist = np.hypot(px, py)
     bearing = np.arctan2(py, px)
-    in_cone = np.abs(_wrap_angle(bearing[None, :] - angles[:, None])) <= scan.beam_width_rad / 2.0
+    in_cone = np.abs(wrap_angle(bearing[None, :] - angles[:, None])) <= scan.beam_width_rad / 2.0
     seen_free = (in_cone & (dist[None, :] <= ranges[:, None])).any(axis=0)
     return bool((seen_free | (dist < 1e-9)).all())
 
@@ -108,6 +104,6 @@ def open_directions(heading_rad: float, scan: SonarScan, *, directions: int,
                     length_m: float, half_width_m: float, sample_step_m: float) -> list[float]:
     """World directions ``2 pi k / directions`` in which :func:`clear_towards` sees ``length_m`` free."""
     cands = [2.0 * np.pi * k / directions for k in range(directions)]
-    return [float(_wrap_angle(c)) for c in cands
+    return [float(wrap_angle(c)) for c in cands
             if clear_towards(heading_rad, scan, c, length_m, half_width_m=half_width_m,
                              sample_step_m=sample_step_m)]

@@ -3,12 +3,17 @@
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+
+import msgspec
+import numpy as np
 
 from messages.types import LocalizationBelief, Pose2, SonarScan
 from services.explorer.controller import Command, clear_towards, open_directions, velocity_command
 from services.explorer.planner import dijkstra, path_to, reachable
+from sim.geometry import wrap_angle
 
 NO_PLACE = -1
 TRAVERSED, INFERRED, PREDICTED = "traversed", "inferred", "predicted"  # link kinds
@@ -31,6 +36,7 @@ class ExplorerParams:
     confidence_rate: float = 0.5  # lambda of Eqs. 17-18
     confidence_min: float = 0.2  # a link is deleted when its confidence falls below this
     arrive_tolerance_m: float = 0.1  # the robot has reached a place within this distance of it
+    on_the_way_m: float = 0.5  # a place this close to a leg's line, passed on the way, continues the leg
     leg_timeout_base_s: float = 20.0  # a leg fails after this ...
     leg_timeout_per_m_s: float = 20.0  # ... plus this per metre of its length
     blocked_timeout_s: float = 5.0  # a leg fails after the controller is blocked this long
@@ -43,6 +49,13 @@ class ExplorerParams:
     avoid_distance_m: float = 0.6  # obstacles in the front half closer than this turn the robot away
     avoid_gain: float = 0.8  # turn rate per unit of (1 - range / avoid distance), rad/s
     front_half_angle_rad: float = 0.5  # half angle of the frontal sector
+    stall_window_s: float = 2.0  # moving forward this long ...
+    stall_distance_m: float = 0.03  # ... with less dead-reckoned progress than this is a stall
+    stall_min_speed_mps: float = 0.05  # commands at least this fast count as moving forward
+    recover_s: float = 1.5  # after a stall, back away from the nearest obstacle this long
+    recover_speed_mps: float = 0.1  # backing speed while recovering
+    recover_turn_radps: float = 0.6  # turn rate away from the nearest obstacle while recovering
+    rear_clearance_m: float = 0.4  # no backing when the rear sector sees an obstacle closer than this
 
 
 @dataclass(frozen=True)
@@ -197,6 +210,8 @@ class Explorer:
       place is confirmed at the robot's position (dead reckoning relative to the last place). The
       leg fails when the controller stays blocked for ``blocked_timeout_s`` or the leg outlasts
       ``leg_timeout_base_s + leg_timeout_per_m_s * length``: the predicted place is deleted.
+      Arriving at a confirmed place within ``on_the_way_m`` of a leg's line towards a confirmed place
+      (and nearer its end) counts as a traversal to it, and the leg goes on from there.
       Arriving at a known confirmed place instead ends the leg; a predicted target within
       ``merge_distance_m`` of that place is deleted as a duplicate.
     - *Inferred links* from a newly confirmed place to confirmed places within
@@ -226,6 +241,11 @@ class Explorer:
         self._next_id = 0
         self._last_pose: Pose2 | None = None
         self._last_scan: SonarScan | None = None
+        self._scan_heading = 0.0  # compass heading the last scan was taken at
+        self._moving: deque[tuple[float, float, float]] = deque()  # (time, x, y) while commanding forward
+        self._recover_until = -math.inf
+        self._recover_cmd = (0.0, 0.0)
+        self.stalls = 0  # stalls met (robot pressed against an obstacle the sonar missed)
         self._leg_start_s = 0.0
         self._blocked_since: float | None = None
         self._fix_after_s = -math.inf  # localizations older than this are stale (before a confirmation)
@@ -260,6 +280,7 @@ class Explorer:
         self._last_pose = pose
         if scan is not None:
             self._last_scan = scan
+            self._scan_heading = pose.heading_rad
         if not any(p.confirmed for p in self.places.values()):
             if self._last_scan is None:
                 return self._output(events, now_s, pose)
@@ -360,6 +381,15 @@ class Explorer:
                 events += self._traversed(prev if prev != NO_PLACE else frm, k)
                 if self.loop_queue and self.loop_queue[0] == (frm, to):
                     self.loop_queue.pop(0)
+            elif self.places[to].confirmed and k != frm and self._on_the_way(frm, to, k):
+                # an intermediate place: the traversal so far counts, the leg goes on from here
+                if prev != NO_PLACE and prev != k and prev in self.places:
+                    events += self._traversed(prev, k)
+                if self.loop_queue and self.loop_queue[0] == (frm, to):
+                    self.loop_queue[0] = (k, to)
+                self._start_leg((k, to), self.target, now_s)
+                self.current = self.last_place = k
+                return events + self._prune()
             else:
                 if self.places[to].confirmed and k != frm:
                     events += self._failed(frm, to, "reached another place")
@@ -373,6 +403,17 @@ class Explorer:
         self.current = self.last_place = k
         events += self._prune()
         return events
+
+    def _on_the_way(self, frm: int, to: int, k: int) -> bool:
+        """Whether place ``k`` lies on the straight leg ``frm -> to``, nearer ``to`` than ``frm`` is."""
+        a, b, c = self.places[frm], self.places[to], self.places[k]
+        ex, ey = b.x_m - a.x_m, b.y_m - a.y_m
+        length2 = ex * ex + ey * ey
+        if length2 == 0.0 or self.distance(k, to) >= self.distance(frm, to):
+            return False
+        t = min(max(((c.x_m - a.x_m) * ex + (c.y_m - a.y_m) * ey) / length2, 0.0), 1.0)
+        off = math.hypot(a.x_m + t * ex - c.x_m, a.y_m + t * ey - c.y_m)
+        return off <= self.params.on_the_way_m
 
     def _traversed(self, a: int, b: int) -> list[Event]:
         """A traversal of ``a -> b``: a new link at the initial confidence, or Eq. 17."""
@@ -457,7 +498,7 @@ class Explorer:
         self._fix_after_s = now_s
         scan = self._last_scan
         if scan is not None and self._last_pose is not None:
-            heading = self._last_pose.heading_rad
+            heading = self._scan_heading
             for direction in open_directions(heading, scan, directions=p.directions, length_m=p.open_distance_m,
                                              half_width_m=p.open_half_width_m, sample_step_m=p.sample_step_m):
                 cx, cy = x + p.place_spacing_m * math.cos(direction), y + p.place_spacing_m * math.sin(direction)
@@ -525,8 +566,9 @@ class Explorer:
         p = self.params
         if self.leg is not None and self.robot_xy is not None:
             goal = self.places[self.leg[1]]
+            scan = self._scan_in_heading(pose.heading_rad)
             cmd = velocity_command(
-                self.robot_xy[0], self.robot_xy[1], pose.heading_rad, goal.x_m, goal.y_m, self._last_scan,
+                self.robot_xy[0], self.robot_xy[1], pose.heading_rad, goal.x_m, goal.y_m, scan,
                 max_speed_mps=p.max_speed_mps, max_turn_radps=p.max_turn_radps, heading_gain=p.heading_gain,
                 turn_in_place_rad=p.turn_in_place_rad, stop_distance_m=p.stop_distance_m,
                 slow_distance_m=p.slow_distance_m, avoid_distance_m=p.avoid_distance_m,
@@ -536,13 +578,59 @@ class Explorer:
                 self._blocked_since = now_s if self._blocked_since is None else self._blocked_since
             else:
                 self._blocked_since = None
+            cmd = self._unstall(now_s, pose, cmd, scan)
         else:
             cmd = Command(0.0, 0.0, False, math.inf)
+            self._moving.clear()
         confirmed = sum(1 for q in self.places.values() if q.confirmed)
         status = ExplorerStatus(complete=self.complete, confirmed=confirmed,
                                 predicted=len(self.places) - confirmed,
                                 target_id=self.target if self.leg is not None else NO_PLACE)
         diag = {"links": float(sum(1 for k in self.links.values() if k.kind != PREDICTED)),
                 "loop_queue": float(len(self.loop_queue)), "leg_age_s": now_s - self._leg_start_s
-                if self.leg is not None else 0.0}
+                if self.leg is not None else 0.0, "stalls": float(self.stalls)}
         return ExplorerOutput(events=tuple(events), command=cmd, status=status, diagnostics=diag)
+
+    def _scan_in_heading(self, heading_rad: float) -> SonarScan | None:
+        """The last scan with its bearings turned to the current heading (it was taken at another)."""
+        scan = self._last_scan
+        turn = wrap_angle(self._scan_heading - heading_rad)
+        if scan is None or turn == 0.0:
+            return scan
+        return msgspec.structs.replace(scan, angles_rad=[a + turn for a in scan.angles_rad])
+
+    def _unstall(self, now_s: float, pose: Pose2, cmd: Command, scan: SonarScan | None) -> Command:
+        """Back away from an obstacle the sonar missed when forward commands make no progress.
+
+        A stall: for ``stall_window_s`` every command asked at least ``stall_min_speed_mps`` forward
+        and dead reckoning moved less than ``stall_distance_m``. The robot then backs off at
+        ``recover_speed_mps`` (unless the rear sector is closer than ``rear_clearance_m``) while
+        turning away from the side of the nearest echo, for ``recover_s``.
+        """
+        p = self.params
+        if now_s < self._recover_until:
+            return Command(self._recover_cmd[0], self._recover_cmd[1], cmd.blocked, cmd.front_clearance_m)
+        if cmd.v_mps < p.stall_min_speed_mps:
+            self._moving.clear()
+            return cmd
+        self._moving.append((now_s, pose.x_m, pose.y_m))
+        t0, x0, y0 = self._moving[0]
+        while len(self._moving) > 1 and now_s - self._moving[1][0] >= p.stall_window_s:
+            self._moving.popleft()
+            t0, x0, y0 = self._moving[0]
+        if now_s - t0 < p.stall_window_s or math.hypot(pose.x_m - x0, pose.y_m - y0) >= p.stall_distance_m:
+            return cmd
+        self.stalls += 1
+        self._moving.clear()
+        v, w = -p.recover_speed_mps, 0.0
+        if scan is not None and len(scan.ranges_m):
+            angles = wrap_angle(np.asarray(scan.angles_rad, dtype=float))
+            ranges = np.asarray(scan.ranges_m, dtype=float)
+            nearest = float(angles[int(np.argmin(ranges))])
+            w = -p.recover_turn_radps if nearest > 0 else p.recover_turn_radps
+            rear = np.abs(angles) > 2.0 * math.pi / 3.0
+            if rear.any() and float(ranges[rear].min()) < p.rear_clearance_m:
+                v = 0.0
+        self._recover_until = now_s + p.recover_s
+        self._recover_cmd = (v, w)
+        return Command(v, w, cmd.blocked, cmd.front_clearance_m)

@@ -8,13 +8,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from messages.types import Pose2, SonarScan
+from sim.geometry import wrap_angle
 
 OCCUPIED, EMPTY, UNKNOWN = 0, 1, 2  # cell labels, also the row order of a histogram
-
-
-def _wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
-    """Wrap angles to [-pi, pi)."""
-    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
 
 
 @dataclass(frozen=True)
@@ -103,7 +99,7 @@ def integrate_scan(
     bearing = np.arctan2(dy, dx)
     ranges = np.clip(scan.ranges_m, 0.0, scan.max_range_m)
     beams = scan.heading_rad + scan.angles_rad
-    dtheta = _wrap_angle(bearing[None, :, :] - beams[:, None, None])
+    dtheta = wrap_angle(bearing[None, :, :] - beams[:, None, None])
     in_cone = (np.abs(dtheta) <= scan.beam_width_rad / 2.0) | (dist[None] < cell_m / 2.0)
     half = echo_thickness_m / 2.0
     r = ranges[:, None, None]
