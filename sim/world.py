@@ -87,7 +87,7 @@ class World:
     routes: dict[str, np.ndarray] = field(default_factory=dict)  # name -> (K, 2) waypoints, metres
     source: str = "<memory>"
     raster: Raster | None = None  # set for worlds loaded from an occupancy map
-    _index: dict = field(default_factory=dict, repr=False)
+    _index: dict = field(default_factory=dict, init=False, repr=False, compare=False)  # walls_near cache
 
     # -- extent --------------------------------------------------------------------------------------
     @property

@@ -9,7 +9,8 @@ TARGET_RTF = 200.0  # sim + DR over the bus, on 2 cores
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--world", default="manchester-corridors", help="world to drive in (default manchester-corridors)")
+    parser.add_argument("--world", default="manchester-corridors",
+                        help="world to drive in (default manchester-corridors)")
     parser.add_argument("--route", default=None, help="route of the world to drive (default: its first)")
     parser.add_argument("--steps", type=int, default=5000, help="simulation steps per in-process run")
     parser.add_argument("--sim-time", type=float, default=300.0, help="simulated seconds per bus run")

@@ -24,7 +24,7 @@ log = logging.getLogger("relaxmap.dead_reckoning")
 class DeadReckoningNodeParams:
     max_sim_time_s: float | None = None  # stop after integrating a step stamped at or past this time
     duration_s: float | None = None  # stop after this wall time
-    core: core.DeadReckoningParams = field(default_factory=core.DeadReckoningParams)  # the filter
+    filter_params: core.DeadReckoningParams = field(default_factory=core.DeadReckoningParams)  # the filter
 
 
 def run(session: zenoh.Session, params: DeadReckoningNodeParams = DeadReckoningNodeParams(), *,
@@ -39,7 +39,7 @@ def run(session: zenoh.Session, params: DeadReckoningNodeParams = DeadReckoningN
 
         def on_sensor(msg: OdometryStep | CompassReading) -> None:
             nonlocal state
-            state, poses = core.step(state, msg, params.core)
+            state, poses = core.step(state, msg, params.filter_params)
             for pose in poses:
                 pub.put(pose)
             if poses:

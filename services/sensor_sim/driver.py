@@ -56,7 +56,8 @@ class RouteCommander:
         self.last_tick = -1  # the latest tick answered
         self.first_command_at: float | None = None  # time.monotonic() of the first command sent
         self._last_cmd = (0.0, 0.0)
-        self._pub = session.declare_publisher(topics.cmd_velocity(robot), encoding=zenoh.Encoding("application/msgpack"))
+        self._pub = session.declare_publisher(topics.cmd_velocity(robot),
+                                              encoding=zenoh.Encoding("application/msgpack"))
         if source == "truth":
             self._dec = codec(TruthPose)
             key = topics.truth_pose(robot)

@@ -133,7 +133,8 @@ class _Outputs:
 
     def __init__(self, node: Node, robot: str) -> None:
         def declare(key: str) -> zenoh.Publisher:
-            return node.session.declare_publisher(key, encoding=_MSGPACK, congestion_control=zenoh.CongestionControl.BLOCK)
+            return node.session.declare_publisher(key, encoding=_MSGPACK,
+                                                  congestion_control=zenoh.CongestionControl.BLOCK)
 
         self.count = 0
         self._truth = declare(topics.truth_pose(robot))

@@ -4,13 +4,20 @@ from __future__ import annotations
 
 import os
 import threading
-import time
 
 import pytest
 
 from messages import topics
 from messages.codec import codec
-from messages.types import CompassReading, DeadReckonedPose, Health, OdometryStep, SonarScan, TruthPose, VelocityCommand
+from messages.types import (
+    CompassReading,
+    DeadReckonedPose,
+    Health,
+    OdometryStep,
+    SonarScan,
+    TruthPose,
+    VelocityCommand,
+)
 from services.runtime import AliveWatcher, query
 from services.sensor_sim.driver import RouteCommander
 from sim.world import load_world

@@ -11,7 +11,8 @@ from services.bench import BENCHES
 def test_worlds_lists_the_builtin_worlds_with_sizes(capsys):
     assert cli.main(["worlds"]) == 0
     out = capsys.readouterr().out
-    for name, size in (("orebro-office", "45.5 x 11.5"), ("manchester-corridors", "33.5 x 32.5"), ("campus", "109.5 x 63.5")):
+    sizes = (("orebro-office", "45.5 x 11.5"), ("manchester-corridors", "33.5 x 32.5"), ("campus", "109.5 x 63.5"))
+    for name, size in sizes:
         line = next(ln for ln in out.splitlines() if ln.startswith(name))
         assert size in line
 

@@ -10,23 +10,22 @@ import pytest
 from messages.codec import codec
 from messages.types import CompassReading, OdometryStep
 from services.dead_reckoning import core as dr
-from services.sensor_sim import core as sim
+from services.sensor_sim import core as ss
 from sim.geometry import wrap_angle
 from sim.route import RouteDriver, RouteParams, RouteState, drive
-from sim.sensors import CompassParams, OdometryParams
 from sim.world import load_world
 
 MANCHESTER = load_world("manchester-corridors")
 
 
-def _run(world, seed, ticks, params=sim.SensorSimParams(), route="outer-loop"):
-    model = sim.SimModel(world, params)
+def _run(world, seed, ticks, params=ss.SensorSimParams(), route="outer-loop"):
+    model = ss.SimModel(world, params)
     rng = np.random.default_rng(seed)
-    state, frame = sim.start(model, rng)
+    state, frame = ss.start(model, rng)
     frames = [frame]
     driver = RouteDriver(world.routes[route])
     for _ in range(ticks):
-        state, frame = sim.step(state, driver.command(state.pose), model, rng)
+        state, frame = ss.step(state, driver.command(state.pose), model, rng)
         frames.append(frame)
     return state, frames
 
@@ -55,7 +54,7 @@ def test_frames_ticks_and_seqs():
 
 
 def test_sonar_at_a_set_rate():
-    params = sim.SensorSimParams(sonar_every_m=0.0, sonar_period_s=1.0)
+    params = ss.SensorSimParams(sonar_every_m=0.0, sonar_period_s=1.0)
     _, frames = _run(MANCHESTER, 1, 100, params)
     assert [f.tick for f in frames if f.sonar is not None] == list(range(0, 101, 10))
 
@@ -173,15 +172,15 @@ def test_route_driver_turns_then_drives_and_finishes():
 def test_every_builtin_route_is_driven_without_collision():
     for name in ("orebro-office", "manchester-corridors", "campus"):
         world = load_world(name)
-        model = sim.SimModel(world)
+        model = ss.SimModel(world)
         for rname, pts in world.routes.items():
             rng = np.random.default_rng(0)
-            state, _ = sim.start(model, rng)
-            state = sim.SimState(tick=0, pose=(pts[0][0], pts[0][1], 0.0), travel_since_scan_m=0.0,
+            state, _ = ss.start(model, rng)
+            state = ss.SimState(tick=0, pose=(pts[0][0], pts[0][1], 0.0), travel_since_scan_m=0.0,
                                  time_since_scan_s=0.0, scans=1, collisions=0, path_length_m=0.0)
             driver = RouteDriver(pts, loop=True)
             while driver.state.laps < 1 and state.tick < 20000:
-                state, _ = sim.step(state, driver.command(state.pose), model, rng)
+                state, _ = ss.step(state, driver.command(state.pose), model, rng)
             assert driver.state.laps == 1, (name, rname)
             assert state.collisions == 0, (name, rname)
 
@@ -195,9 +194,9 @@ def _long_loop(laps, seed=1):
     Rows: distance travelled, |compass DR heading error|, compass DR position error, |raw heading
     error| (unwrapped: it keeps growing past 180 deg), raw position error.
     """
-    model = sim.SimModel(MANCHESTER)
+    model = ss.SimModel(MANCHESTER)
     rng = np.random.default_rng(seed)
-    state, frame = sim.start(model, rng)
+    state, frame = ss.start(model, rng)
     filt, _ = dr.step(dr.DrState(), frame.compass)
     driver = RouteDriver(MANCHESTER.routes["outer-loop"])
     x0, y0, _ = MANCHESTER.start
@@ -205,7 +204,7 @@ def _long_loop(laps, seed=1):
     raw_turned = true_turned = 0.0
     while driver.state.laps < laps:
         before = state.pose[2]
-        state, frame = sim.step(state, driver.command(state.pose), model, rng)
+        state, frame = ss.step(state, driver.command(state.pose), model, rng)
         filt, _ = dr.step(filt, frame.compass)
         filt, poses = dr.step(filt, frame.odometry)
         p = poses[-1]
