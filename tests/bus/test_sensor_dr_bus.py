@@ -107,7 +107,8 @@ def _lockstep_run(session, processes, endpoint, robot, seed, ticks):
     truth = Recorder(session, topics.truth_pose(robot), TruthPose)
     odo = Recorder(session, topics.odometry(robot), OdometryStep)
     commander = RouteCommander(session, ROUTE, robot=robot, source="dr", origin=WORLD.start[:2])
-    sim, dr = _start(processes, endpoint, robot, "--seed", str(seed), "--lockstep",
+    # a generous timeout: a tick that timed out would change the trajectory, however loaded the machine
+    sim, dr = _start(processes, endpoint, robot, "--seed", str(seed), "--lockstep", "--lockstep-timeout-s", "30",
                      "--max-sim-time", str(ticks / 10), dr_args=("--max-sim-time", str(ticks / 10)))
     return truth, odo, commander, sim, dr
 
@@ -178,6 +179,7 @@ def test_lockstep_never_waits_forever(hub, processes):
                           "--max-sim-time", "0.5")
         assert watcher.wait_alive(["sensor_sim"], 30)
         assert wait_until(lambda: truth.snapshot(), 30)
+        assert wait_until(lambda: pub.matching_status.matching, 10)
         # one command, for tick 0 only: the robot drives for one tick, then every tick times out
         pub.put(codec(VelocityCommand).encode(VelocityCommand(stamp=0.0, seq=0, v_mps=0.5, omega_radps=0.0, tick=0)))
         assert wait_until(lambda: any(m.seq == 2 for m in truth.snapshot()), 10)
