@@ -7,7 +7,9 @@ import shutil
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import rerun as rr
@@ -39,6 +41,7 @@ APPLICATION_ID = "relaxmap"
 SIM_TIME = "sim_time"  # timeline of simulated seconds (each message's stamp)
 MAP_VERSION = "map_version"  # timeline of map versions (MapUpdate.version), set from the first update on
 FLUSH_TIMEOUT_S = 10.0  # longest wait for the stream to reach the file when closing
+DRAIN_S = 1.0  # after the stop, messages already queued are still recorded for at most this long
 
 # Entity paths. Everything spatial lives under MAP, in metres, world frame.
 MAP = "map"
@@ -143,8 +146,10 @@ class Recorder:
         self.max_sim_time_s = max_sim_time_s
         self.complete = False
         self._grid_thread: threading.Thread | None = None
+        self._grid_in_flight = False  # a query's thread runs, or its result waits in the event queue
+        self._grid_pending: float | None = None  # stamp of a request made while another was in flight
         # Every key is present from the start: health copies this dict from another thread.
-        node.detail.update({"map_updates": 0, "map_version": -1, "grid_queries": 0, "grid_failures": 0,
+        node.detail.update({"handled": 0, "map_updates": 0, "map_version": -1, "grid_queries": 0, "grid_failures": 0,
                             "grids_logged": 0, "grid_skipped": 0, "places": 0, "predicted": 0,
                             "links_traversed": 0, "links_inferred": 0, "sonar_scans": 0})
         self._log_static()
@@ -315,8 +320,11 @@ class Recorder:
     # -- the occupancy grid -------------------------------------------------------------------------
     def _ask_grid(self, stamp: float) -> None:
         """Ask map/grid in a worker thread; the reply is logged from the event loop."""
-        if self._grid_thread is not None and self._grid_thread.is_alive():
-            self.node.detail["grid_skipped"] += 1
+        if self._grid_in_flight:
+            # One query at a time; the latest request waits for the one in flight to end.
+            if self._grid_pending is not None:
+                self.node.detail["grid_skipped"] += 1
+            self._grid_pending = stamp
             return
         self.node.detail["grid_queries"] += 1
         p = self.params
@@ -332,12 +340,21 @@ class Recorder:
                 return
             call_soon(self._on_grid, grid, stamp)
 
+        self._grid_in_flight = True
         self._grid_thread = threading.Thread(target=ask, name="recorder-grid", daemon=True)
         self._grid_thread.start()
+
+    def _grid_done(self) -> None:
+        """The query in flight ended: ask again for a request that came meanwhile."""
+        self._grid_in_flight = False
+        if self._grid_pending is not None and not self.stop.is_set():
+            stamp, self._grid_pending = self._grid_pending, None
+            self._ask_grid(stamp)
 
     def _on_grid_failed(self, error: Exception) -> None:
         self.node.detail["grid_failures"] += 1
         log.debug("recorder: no occupancy grid: %s", error)
+        self._grid_done()
 
     def _on_grid(self, grid: OccupancyGrid, stamp: float) -> None:
         try:
@@ -345,12 +362,14 @@ class Recorder:
         except ValueError as e:
             self._on_grid_failed(e)
             return
+        self._grid_done()
         if self._at(stamp):
             self.rec.set_time(MAP_VERSION, sequence=grid.version)
             # Row r, column c of the image covers x = ox + c res, y = oy + r res (the grid's own layout).
             self.rec.log(GRID, rr.Transform3D(translation=[*image.origin_xy, 0.0],
                                               scale=[image.resolution_m, image.resolution_m, 1.0]))
             self.rec.log(GRID, rr.Image(image.grey, color_model="L", draw_order=-10.0))
+            self.rec.set_time(MAP_VERSION, sequence=max(self.state.version, grid.version))
             self.node.detail["grids_logged"] += 1
 
     def close(self, timeout_s: float = 0.5) -> None:
@@ -360,19 +379,43 @@ class Recorder:
 
 
 def subscribe_all(node: Node, recorder: Recorder, robot: str) -> None:
-    """Every topic the recorder draws, to its callback."""
-    node.subscribe(topics.truth_pose(robot), TruthPose, recorder.on_truth)
-    node.subscribe(topics.dr_pose(robot), DeadReckonedPose, recorder.on_dead_reckoning)
-    node.subscribe(topics.sonar(robot), SonarScan, recorder.on_sonar)
-    node.subscribe(topics.localization(robot), LocalizationBelief, recorder.on_belief)
-    node.subscribe(topics.places_confirmed(robot), PlaceConfirmed, recorder.on_place_confirmed)
-    node.subscribe(topics.places_predicted(robot), PlacePredicted, recorder.on_place_predicted)
-    node.subscribe(topics.places_deleted(robot), PlaceDeleted, recorder.on_place_deleted)
-    node.subscribe(topics.links_measured(robot), LinkMeasured, recorder.on_link_measured)
-    node.subscribe(topics.links_inferred(robot), LinkInferred, recorder.on_link_inferred)
-    node.subscribe(topics.links_deleted(robot), LinkDeleted, recorder.on_link_deleted)
-    node.subscribe(topics.map_update(robot), MapUpdate, recorder.on_map_update)
-    node.subscribe(topics.exploration_status(robot), ExplorationStatus, recorder.on_status)
+    """Every topic the recorder draws, to its callback; ``handled`` in health counts the messages done."""
+    table = (
+        (topics.truth_pose(robot), TruthPose, recorder.on_truth),
+        (topics.dr_pose(robot), DeadReckonedPose, recorder.on_dead_reckoning),
+        (topics.sonar(robot), SonarScan, recorder.on_sonar),
+        (topics.localization(robot), LocalizationBelief, recorder.on_belief),
+        (topics.places_confirmed(robot), PlaceConfirmed, recorder.on_place_confirmed),
+        (topics.places_predicted(robot), PlacePredicted, recorder.on_place_predicted),
+        (topics.places_deleted(robot), PlaceDeleted, recorder.on_place_deleted),
+        (topics.links_measured(robot), LinkMeasured, recorder.on_link_measured),
+        (topics.links_inferred(robot), LinkInferred, recorder.on_link_inferred),
+        (topics.links_deleted(robot), LinkDeleted, recorder.on_link_deleted),
+        (topics.map_update(robot), MapUpdate, recorder.on_map_update),
+        (topics.exploration_status(robot), ExplorationStatus, recorder.on_status),
+    )
+    for key, type_, callback in table:
+        node.subscribe(key, type_, _counted(node, callback))
+
+
+def _counted(node: Node, callback: Callable[[Any], None]) -> Callable[[Any], None]:
+    def on_message(msg: Any) -> None:
+        try:
+            callback(msg)
+        finally:
+            node.detail["handled"] += 1
+
+    on_message.__name__ = callback.__name__
+    return on_message
+
+
+def _drain(node: Node, timeout_s: float) -> int:
+    """Handle the messages that arrived before the stop (for at most ``timeout_s``); how many."""
+    deadline = time.monotonic() + timeout_s
+    n = 0
+    while time.monotonic() < deadline and node.spin_once(0.0):
+        n += 1
+    return n
 
 
 def run(session: zenoh.Session, params: RecorderParams, *, rrd_path: Path, robot: str = topics.DEFAULT_ROBOT,
@@ -400,6 +443,9 @@ def run(session: zenoh.Session, params: RecorderParams, *, rrd_path: Path, robot
             subscribe_all(node, recorder, robot)
             log.info("recorder: writing %s", rrd_path)
             node.spin(stop, tick=tick, period_s=0.1)
+            drained = _drain(node, DRAIN_S)
+            if drained:
+                log.info("recorder: %d queued messages recorded after the stop", drained)
     finally:
         close_recording(rec)
         if recorder is not None:
