@@ -40,13 +40,14 @@ def run(session: zenoh.Session, params: DeadReckoningNodeParams = DeadReckoningN
         def on_sensor(msg: OdometryStep | CompassReading) -> None:
             nonlocal state
             state, poses = core.step(state, msg, params.filter_params)
+            if not poses:
+                return
+            _update_detail(node, state)  # first: whoever has seen a pose finds health that far
             for pose in poses:
                 pub.put(pose)
-            if poses:
-                _update_detail(node, state)
-                if params.max_sim_time_s is not None and state.last_stamp >= params.max_sim_time_s - 1e-9:
-                    log.info("%s: simulated time %.1f s reached", SERVICE, state.last_stamp)
-                    stop.set()
+            if params.max_sim_time_s is not None and state.last_stamp >= params.max_sim_time_s - 1e-9:
+                log.info("%s: simulated time %.1f s reached", SERVICE, state.last_stamp)
+                stop.set()
 
         node.subscribe(topics.compass(robot), CompassReading, on_sensor)
         node.subscribe(topics.odometry(robot), OdometryStep, on_sensor)

@@ -113,12 +113,13 @@ def _simulate(node: Node, model: core.SimModel, params: SensorSimNodeParams, cmd
             cmd = cmds.latest if fresh else (0.0, 0.0)
         state, frame = core.step(state, cmd, model, rng)
         cmds.tick = state.tick
+        # health first: whoever has seen a tick's messages finds health at least that far
+        _update_detail(node, state, cmds, dt, time.monotonic() - t_run)
         out.publish(frame)
-        _update_detail(node, state, cmds, out, dt, time.monotonic() - t_run)
         if params.max_sim_time_s is not None and frame.truth.stamp >= params.max_sim_time_s - 1e-9:
             log.info("%s: simulated time %.1f s reached", SERVICE, frame.truth.stamp)
             break
-    _update_detail(node, state, cmds, out, dt, time.monotonic() - t_run)
+    _update_detail(node, state, cmds, dt, time.monotonic() - t_run)
     # stay a moment: zenoh drops what is still queued when the session closes
     linger_end = time.monotonic() + params.linger_s
     while not stop.is_set() and (now := time.monotonic()) < linger_end:
@@ -136,7 +137,8 @@ class _Outputs:
             return node.session.declare_publisher(key, encoding=_MSGPACK,
                                                   congestion_control=zenoh.CongestionControl.BLOCK)
 
-        self.count = 0
+        self._node = node
+        self.count = 0  # messages published (these publishers are outside the node's messages_out)
         self._truth = declare(topics.truth_pose(robot))
         self._compass = declare(topics.compass(robot))
         self._odometry = declare(topics.odometry(robot))
@@ -147,15 +149,14 @@ class _Outputs:
         """Truth first (a scripted commander may key on it); compass before odometry, because dead
         reckoning pairs a step with the compass reading of its end."""
         truth, compass, odometry, sonar = self._enc
+        self.count += 2 + (frame.odometry is not None) + (frame.sonar is not None)
+        self._node.detail["published"] = self.count
         self._truth.put(truth.encode(frame.truth))
         self._compass.put(compass.encode(frame.compass))
-        self.count += 2
         if frame.odometry is not None:
             self._odometry.put(odometry.encode(frame.odometry))
-            self.count += 1
         if frame.sonar is not None:
             self._sonar.put(sonar.encode(frame.sonar))
-            self.count += 1
 
     def undeclare(self) -> None:
         for pub in (self._truth, self._compass, self._odometry, self._sonar):
@@ -193,10 +194,8 @@ class _Commands:
         return self.by_tick.pop(tick, None)
 
 
-def _update_detail(node: Node, state: core.SimState, cmds: _Commands, out: _Outputs, dt: float,
-                   wall_s: float) -> None:
+def _update_detail(node: Node, state: core.SimState, cmds: _Commands, dt: float, wall_s: float) -> None:
     d = node.detail
-    d["published"] = out.count
     d["tick"] = state.tick
     d["sim_time_s"] = state.tick * dt
     d["collisions"] = state.collisions
