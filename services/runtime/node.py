@@ -29,11 +29,14 @@ QueryHandler = Callable[[str, QueryParams], Any]
 class TypedPublisher(Generic[T]):
     """Publishes messages of one type on one key, msgpack-encoded, counting them."""
 
-    def __init__(self, node: Node, key: str, type_: type[T]) -> None:
+    def __init__(self, node: Node, key: str, type_: type[T], *, lossless: bool = True) -> None:
         self.key = key
         self.type = type_
         self._node = node
-        self._pub = node.session.declare_publisher(key, encoding=_MSGPACK)
+        # lossless: zenoh's congestion control "block" (a slow subscriber slows the publisher down
+        # rather than losing messages); otherwise "drop" (for streams where only the latest matters)
+        cc = zenoh.CongestionControl.BLOCK if lossless else zenoh.CongestionControl.DROP
+        self._pub = node.session.declare_publisher(key, encoding=_MSGPACK, congestion_control=cc)
 
     def put(self, msg: T) -> None:
         if not isinstance(msg, self.type):
@@ -104,8 +107,9 @@ class Node:
             self._reply_error(query, str(e))
 
     # -- declarations -----------------------------------------------------------------------------
-    def publisher(self, key: str, type_: type[T]) -> TypedPublisher[T]:
-        pub = TypedPublisher(self, key, type_)
+    def publisher(self, key: str, type_: type[T], *, lossless: bool = True) -> TypedPublisher[T]:
+        """A typed publisher on ``key``; ``lossless=False`` lets zenoh drop under congestion."""
+        pub = TypedPublisher(self, key, type_, lossless=lossless)
         self._entities.append(pub)
         return pub
 

@@ -13,14 +13,12 @@ import numpy as np
 import zenoh
 
 from messages import topics
-from messages.codec import codec
 from messages.types import CompassReading, OdometryStep, SonarScan, TruthPose, VelocityCommand
 from services.runtime import Node
 from services.sensor_sim import core
 from sim.world import World, WorldError, load_world
 
 SERVICE = "sensor_sim"
-_MSGPACK = zenoh.Encoding("application/msgpack")
 log = logging.getLogger("relaxmap.sensor_sim")
 
 
@@ -55,7 +53,7 @@ def run(session: zenoh.Session, world: World, params: SensorSimNodeParams, *,
         cmds = _Commands()
         node.detail.update(tick=0, sim_time_s=0.0, started=0, lockstep=float(params.lockstep), rtf=params.rtf,
                            lockstep_timeouts=0, stale_commands=0, commands=0, collisions=0, scans=0,
-                           rtf_achieved=0.0, seed=params.seed, published=0)
+                           rtf_achieved=0.0, seed=params.seed)
         node.subscribe(topics.cmd_velocity(robot), VelocityCommand, cmds.on_cmd_velocity)
         try:
             return _simulate(node, core.SimModel(world, params.sim), params, cmds, out, stop)
@@ -130,33 +128,23 @@ def _simulate(node: Node, model: core.SimModel, params: SensorSimNodeParams, cmd
 
 
 class _Outputs:
-    """The four sensor publishers, lossless; counts what they publish."""
+    """The four sensor publishers, lossless (a slow subscriber slows the simulation down)."""
 
     def __init__(self, node: Node, robot: str) -> None:
-        def declare(key: str) -> zenoh.Publisher:
-            return node.session.declare_publisher(key, encoding=_MSGPACK,
-                                                  congestion_control=zenoh.CongestionControl.BLOCK)
-
-        self._node = node
-        self.count = 0  # messages published (these publishers are outside the node's messages_out)
-        self._truth = declare(topics.truth_pose(robot))
-        self._compass = declare(topics.compass(robot))
-        self._odometry = declare(topics.odometry(robot))
-        self._sonar = declare(topics.sonar(robot))
-        self._enc = (codec(TruthPose), codec(CompassReading), codec(OdometryStep), codec(SonarScan))
+        self._truth = node.publisher(topics.truth_pose(robot), TruthPose)
+        self._compass = node.publisher(topics.compass(robot), CompassReading)
+        self._odometry = node.publisher(topics.odometry(robot), OdometryStep)
+        self._sonar = node.publisher(topics.sonar(robot), SonarScan)
 
     def publish(self, frame: core.Frame) -> None:
         """Truth first (a scripted commander may key on it); compass before odometry, because dead
         reckoning pairs a step with the compass reading of its end."""
-        truth, compass, odometry, sonar = self._enc
-        self.count += 2 + (frame.odometry is not None) + (frame.sonar is not None)
-        self._node.detail["published"] = self.count
-        self._truth.put(truth.encode(frame.truth))
-        self._compass.put(compass.encode(frame.compass))
+        self._truth.put(frame.truth)
+        self._compass.put(frame.compass)
         if frame.odometry is not None:
-            self._odometry.put(odometry.encode(frame.odometry))
+            self._odometry.put(frame.odometry)
         if frame.sonar is not None:
-            self._sonar.put(sonar.encode(frame.sonar))
+            self._sonar.put(frame.sonar)
 
     def undeclare(self) -> None:
         for pub in (self._truth, self._compass, self._odometry, self._sonar):
