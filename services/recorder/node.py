@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import shutil
+import socket
 import sys
 import threading
 import time
@@ -113,12 +114,16 @@ def open_recording(rrd_path: Path, *, viewer: bool = False, viewer_port: int = 9
     rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
     sinks: list = [rr.FileSink(str(rrd_path))]
     if viewer:
-        exe = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
+        # The CLI installed with this SDK first (same version), else whichever is on PATH.
+        exe = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun") or "rerun"
         try:
             rr.spawn(port=viewer_port, connect=False, executable_path=exe, recording=rec)
+            # A viewer that could not open a window (no display) exits; then nobody listens.
+            with socket.create_connection(("127.0.0.1", viewer_port), timeout=1.0):
+                pass
             sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{viewer_port}/proxy"))
         except Exception as e:  # no display, no binary: the file still gets everything
-            log.warning("recorder: no viewer (%s); writing %s only", e, rrd_path)
+            log.warning("recorder: no viewer on port %d (%s); writing %s only", viewer_port, e, rrd_path)
     rec.set_sinks(*sinks)
     rec.send_blueprint(blueprint(), make_active=True, make_default=True)
     return rec

@@ -273,3 +273,36 @@ def test_bad_parameters_are_a_clear_error(processes, tmp_path):
     out, _ = proc.communicate(timeout=30)
     assert proc.returncode == 2 and "sonar_pose" in out.decode()
     assert not (tmp_path / "recording.rrd").exists()
+
+
+def test_max_sim_time_ends_the_run(hub, processes, tmp_path):
+    session, _ = hub
+    proc = start_recorder(processes, hub, tmp_path, "--max-sim-time", "1.0")
+    s = Script(session)
+    try:
+        s.put(topics.truth_pose(ROBOT), TruthPose(stamp=0.5, seq=0, pose=Pose2(x_m=1.0, y_m=0.0, heading_rad=0.0)))
+        s.sync()
+        s.put(topics.truth_pose(ROBOT), TruthPose(stamp=1.5, seq=1, pose=Pose2(x_m=2.0, y_m=0.0, heading_rad=0.0)))
+        proc.wait(15)
+    finally:
+        s.close()
+    assert proc.returncode == 0, _output(proc)
+    assert verify(tmp_path / "recording.rrd").returncode == 0
+    rows = read_recording(tmp_path / "recording.rrd")
+    assert [t for t, _ in rows["/map/robot/truth/pose"]] == [0.5]
+
+
+def test_an_exception_still_leaves_a_valid_file(tmp_path):
+    import zenoh
+
+    from services.recorder.core import RecorderParams
+    from services.recorder.node import run
+    from services.runtime import loopback_config
+
+    session = zenoh.open(loopback_config())
+    session.close()  # declaring anything on it fails
+    rrd = tmp_path / "recording.rrd"
+    with pytest.raises(zenoh.ZError):
+        run(session, RecorderParams(), rrd_path=rrd, robot=ROBOT)
+    result = verify(rrd)
+    assert result.returncode == 0, result.stdout + result.stderr
