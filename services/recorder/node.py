@@ -33,7 +33,7 @@ from messages.types import (
     SonarScan,
     TruthPose,
 )
-from services.recorder.core import POSE_SOURCES, STYLE, RecorderParams, RecorderState, grid_image
+from services.recorder.core import STYLE, RecorderParams, RecorderState, grid_image
 from services.runtime import Node, query
 
 log = logging.getLogger("relaxmap.recorder")

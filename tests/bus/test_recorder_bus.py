@@ -145,7 +145,8 @@ def test_records_the_map_and_closes_the_file_on_sigterm(hub, processes, tmp_path
     try:
         for i in range(5):  # the robot drives along +x, the raw odometry drifts to +y
             t = 0.1 * i
-            s.put(topics.truth_pose(ROBOT), TruthPose(stamp=t, seq=i, pose=Pose2(x_m=0.5 * i, y_m=0.0, heading_rad=0.0)))
+            s.put(topics.truth_pose(ROBOT), TruthPose(stamp=t, seq=i,
+                                                      pose=Pose2(x_m=0.5 * i, y_m=0.0, heading_rad=0.0)))
             s.put(topics.dr_pose(ROBOT), DeadReckonedPose(
                 stamp=t + 0.01, seq=i, compass=Pose2(x_m=0.5 * i, y_m=0.01 * i, heading_rad=0.0),
                 raw=Pose2(x_m=0.5 * i, y_m=0.1 * i, heading_rad=0.1 * i), steps=10 * i, path_length_m=0.5 * i))

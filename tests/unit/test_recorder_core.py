@@ -198,10 +198,9 @@ def test_arrow_points_along_the_heading():
 def test_belief_on_the_map():
     st = state_with_places()
     st.map_update(update(1, {1: (2.0, 0.5)}))
+    hyps = [Hypothesis(place_id=p, probability=q) for p, q in ((1, 0.8), (-1, 0.1), (2, 0.05), (42, 0.05))]
     msg = LocalizationBelief(stamp=5.0, seq=0, place_id=1, probability=0.8, offset_x_m=0.1, offset_y_m=-0.2,
-                             offset_var_m2=0.04,
-                             hypotheses=[Hypothesis(place_id=1, probability=0.8), Hypothesis(place_id=-1, probability=0.1),
-                                         Hypothesis(place_id=2, probability=0.05), Hypothesis(place_id=42, probability=0.05)])
+                             offset_var_m2=0.04, hypotheses=hyps)
     view = st.belief(msg)
     np.testing.assert_allclose(view.estimate_xy, [2.1, 0.3])
     assert view.sigma_m == pytest.approx(0.2)
