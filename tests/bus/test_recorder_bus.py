@@ -261,8 +261,8 @@ def test_recording_stays_valid_after_a_signal(hub, processes, tmp_path, sig):
 
 def test_duration_ends_the_run_with_a_valid_file(processes, tmp_path):
     rrd = tmp_path / "sub" / "run.rrd"
-    proc = processes.python("services.recorder", "--listen", "tcp/127.0.0.1:0", "--rrd", str(rrd),
-                            "--duration-s", "0.5")
+    proc = processes.python("services.recorder", "--robot", ROBOT, "--listen", "tcp/127.0.0.1:0",
+                            "--rrd", str(rrd), "--duration-s", "0.5")
     out, _ = proc.communicate(timeout=30)
     assert proc.returncode == 0, out.decode()
     result = verify(rrd)
