@@ -307,3 +307,20 @@ def test_an_exception_still_leaves_a_valid_file(tmp_path):
         run(session, RecorderParams(), rrd_path=rrd, robot=ROBOT)
     result = verify(rrd)
     assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_a_missing_grid_is_counted_not_fatal(hub, processes, tmp_path):
+    session, _ = hub
+    proc = start_recorder(processes, hub, tmp_path, "--param", "grid_timeout_s=0.3")
+    s = Script(session)
+    try:
+        s.put(topics.map_update(ROBOT), MapUpdate(stamp=1.0, seq=0, version=1, changed=[], full=True, places=0,
+                                                  links=0, energy=0.0, iterations=0, method="sweep", noise=NOISE))
+        s.sync()
+        assert wait_until(lambda: health(session).detail["grid_failures"] == 1, 10), health(session)
+        h = health(session)
+        assert h.detail["grid_queries"] == 1 and h.detail["grids_logged"] == 0 and proc.poll() is None
+    finally:
+        s.close()
+    assert processes.stop(proc, signal.SIGTERM) == 0
+    assert verify(tmp_path / "recording.rrd").returncode == 0
