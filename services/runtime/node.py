@@ -185,8 +185,12 @@ class Node:
         return True
 
     def spin(self, stop: threading.Event, *, tick: Callable[[], None] | None = None,
-             period_s: float = 0.1) -> None:
-        """Run callbacks until ``stop`` is set; ``tick()`` runs at least every ``period_s``."""
+             period_s: float = 0.1, drain_s: float = 1.0) -> None:
+        """Run callbacks until ``stop`` is set; ``tick()`` runs at least every ``period_s``.
+
+        After the stop, what is already queued is still handled, for up to ``drain_s``: a message
+        that arrived is not thrown away because a signal came just after it.
+        """
         self.announce()
         next_tick = time.monotonic() + period_s
         while not stop.is_set():
@@ -200,6 +204,9 @@ class Node:
                 except Exception:
                     self._count("handler_errors")
                     log.exception("%s: tick failed", self.service)
+        drain_end = time.monotonic() + drain_s
+        while time.monotonic() < drain_end and self.spin_once(0.0):
+            pass
 
     def close(self) -> None:
         """Undeclare everything (the liveliness token last, so others see the service leave)."""
