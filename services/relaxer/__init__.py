@@ -1,0 +1,1 @@
+"""Map relaxation: compass-mode relaxation and exact solve, pose-graph optimisation, map file formats."""
