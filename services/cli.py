@@ -13,6 +13,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "schema": ("services.schema_cli", "print the JSON Schema of every bus message"),
     "query": ("services.query_cli", "ask a running system (prints JSON)"),
     "bench": ("services.bench", "run the benchmarks (tables, never pass/fail)"),
+    "relax": ("services.relaxer.cli", "optimise a stored map (g2o pose graph or compass map.json)"),
     "worlds": ("services.worlds_cli", "list the built-in worlds with their sizes"),
 }
 
