@@ -52,9 +52,11 @@ class CompassParams(msgspec.Struct, frozen=True):
     max_correlation: float = 0.99  # |S_da| is kept below this fraction of sqrt(S_dd S_aa)
     auto_min_step_m: float = 1e-3  # the auto strategy acts only on sweeps moving a place more than this (m)
     auto_target_step_m: float = 1e-6  # the sweep step (m) at which the auto strategy deems a map settled
-    exact_cost_sweeps: float = 8.0  # cost of one exact solve in sweeps, at 1000 places (measured)
-    exact_cost_growth: float = 0.5  # that cost grows as (places / 1000) ** this (measured)
+    exact_cost_sweeps: float = 110.0  # cost of one exact solve in sweeps, at 1000 places (measured)
+    exact_cost_growth: float = 0.15  # that cost grows as (places / 1000) ** this (measured)
     max_exact_noise_rounds: int = 50  # exact solves alternated with noise re-estimation, at most
+    noise_refresh_rel: float = 1e-3  # adopt a new noise estimate once it differs by more than this (relative)
+    class_chunk_places: int = 512  # places per sweep class: a change recompiles only its class (measured)
 
 
 @dataclass(frozen=True)
@@ -417,10 +419,12 @@ class _ColourClass:
     ``sign`` +1 when the target is the link's second place (``r_i = r_j + D``), -1 otherwise.
     """
 
-    __slots__ = ("members", "n", "t", "nb", "k", "sign", "m", "version", "_built", "rows", "cols", "mflat",
-                 "data", "const")
+    __slots__ = ("colour", "members", "n", "t", "nb", "k", "sign", "m", "version", "_built", "_numeric", "rows",
+                 "cols", "mflat", "data", "const")
 
-    def __init__(self) -> None:
+    def __init__(self, colour: int) -> None:
+        self.colour = colour
+        self._numeric = -1
         self.members = np.empty(16, dtype=np.int64)
         self.n = 0
         self.t = np.empty(16, dtype=np.int64)
@@ -451,18 +455,21 @@ class _ColourClass:
         self.mflat = (2 * self.members[: self.n, None] + np.array([0, 1])).ravel()
         self._built = self.version
 
-    def compile(self, w: np.ndarray, wd: np.ndarray) -> None:
+    def compile(self, basis: np.ndarray, disp: np.ndarray, coef: np.ndarray) -> None:
         """Numeric arrays of the block update ``r = A^-1 (sum W r_nb + sum sign W D)`` for the class."""
         self.structure()
+        self._numeric = self.version
         n, m = self.n, self.m
         t, k, sg = self.t[:m], self.k[:m], self.sign[:m]
-        wk = w[k]
+        wk = basis[k] @ coef
+        dk = disp[k]
+        wd = np.stack([wk[:, 0] * dk[:, 0] + wk[:, 1] * dk[:, 1], wk[:, 1] * dk[:, 0] + wk[:, 2] * dk[:, 1]], axis=1)
         axx = np.bincount(t, wk[:, 0], n)
         axy = np.bincount(t, wk[:, 1], n)
         ayy = np.bincount(t, wk[:, 2], n)
         det = axx * ayy - axy * axy
         ia, ib, ic = ayy / det, -axy / det, axx / det
-        wdk = wd[k] * sg[:, None]
+        wdk = wd * sg[:, None]
         hx = np.bincount(t, wdk[:, 0], n)
         hy = np.bincount(t, wdk[:, 1], n)
         self.const = np.stack([ia * hx + ib * hy, ib * hx + ic * hy], axis=1).ravel()
@@ -550,7 +557,7 @@ class CompassRelaxer:
 
     @property
     def n_colours(self) -> int:
-        return sum(1 for c in self._classes if c.n)
+        return len({c.colour for c in self._classes if c.n})
 
     def position(self, place_id: int) -> np.ndarray:
         return self._xy[self.graph.index_of(place_id)].copy()
@@ -586,21 +593,27 @@ class CompassRelaxer:
         pin = self.pinned_index
         if pin >= 0:
             active[pin] = False
-        colour = self._colour[:n]
-        colour[:] = colour_places(n, src, dst, active)
-        ncol = int(colour.max(initial=-1)) + 1
-        for c in range(ncol):
-            cls = _ColourClass()
-            mem = np.flatnonzero(colour == c)
-            cls.members = _grown(cls.members, len(mem))
-            cls.members[: len(mem)] = mem
-            cls.n = len(mem)
-            self._pos[mem] = np.arange(len(mem))
-            self._classes.append(cls)
+        colour = colour_places(n, src, dst, active)
+        slot = self._colour[:n]
+        self._open: dict[int, int] = {}  # colour -> index of its class that still has room
+        chunk = max(1, self.params.class_chunk_places)
+        for c in range(int(colour.max(initial=-1)) + 1):
+            mem_all = np.flatnonzero(colour == c)
+            for start in range(0, len(mem_all), chunk):
+                mem = mem_all[start: start + chunk]
+                cls = _ColourClass(c)
+                cls.members = _grown(cls.members, len(mem))
+                cls.members[: len(mem)] = mem
+                cls.n = len(mem)
+                self._pos[mem] = np.arange(len(mem))
+                slot[mem] = len(self._classes)
+                self._open[c] = len(self._classes)
+                self._classes.append(cls)
+        ncls = len(self._classes)
         # half-links: end 0 targets src (sign -1), end 1 targets dst (sign +1)
         for end, tgt, nbr, sign in ((0, src, dst, -1.0), (1, dst, src, 1.0)):
-            ct = colour[tgt] if k else np.zeros(0, dtype=np.int64)
-            for c in range(ncol):
+            ct = slot[tgt] if k else np.zeros(0, dtype=np.int64)
+            for c in range(ncls):
                 sel = np.flatnonzero(ct == c)
                 cls = self._classes[c]
                 q0 = cls.m
@@ -616,27 +629,31 @@ class CompassRelaxer:
                 self._hlpos[sel, end] = np.arange(q0, q0 + m)
         self._numeric_dirty = True
 
+    def _colour_of(self, i: int) -> int:
+        c = int(self._colour[i])
+        return self._classes[c].colour if c >= 0 else -1
+
     def _free_colour(self, i: int) -> int:
         g = self.graph
         used = set()
         for s in g.link_slots_of(i):
             j = int(g._dst[s]) if g._src[s] == i else int(g._src[s])
-            used.add(int(self._colour[j]))
+            used.add(self._colour_of(j))
         c = 0
         while c in used:
             c += 1
         return c
 
     # ----------------------------------------------------------------------- class maintenance
-    def _class(self, c: int) -> _ColourClass:
-        while len(self._classes) <= c:
-            self._classes.append(_ColourClass())
-        return self._classes[c]
-
-    def _join(self, i: int, c: int) -> None:
-        """Put place ``i`` (with links) into colour class ``c`` with all its half-links."""
+    def _join(self, i: int, colour: int) -> None:
+        """Put place ``i`` (with links) into a class of ``colour`` with all its half-links."""
         g = self.graph
-        cls = self._class(c)
+        c = self._open.get(colour, -1)
+        if c < 0 or self._classes[c].n >= self.params.class_chunk_places:
+            c = len(self._classes)
+            self._classes.append(_ColourClass(colour))
+            self._open[colour] = c
+        cls = self._classes[c]
         p = cls.n
         cls.members = _grown(cls.members, p + 1)
         cls.members[p] = i
@@ -648,7 +665,6 @@ class CompassRelaxer:
             nb = int(g._dst[s]) if end == 0 else int(g._src[s])
             self._hlpos[s, end] = cls.push_hl(p, nb, s, 1.0 if end else -1.0)
         cls.version += 1
-        self._numeric_dirty = True
 
     def _drop_hl(self, cls: _ColourClass, q: int) -> None:
         last = cls.m - 1
@@ -686,7 +702,6 @@ class CompassRelaxer:
         cls.version += 1
         self._colour[i] = -1
         self._pos[i] = -1
-        self._numeric_dirty = True
 
     def _ensure_capacity(self) -> None:
         g = self.graph
@@ -744,11 +759,10 @@ class CompassRelaxer:
             else:
                 cls = self._classes[c]
                 self._hlpos[s, end] = cls.push_hl(int(self._pos[tgt]), nb, s, 1.0 if end else -1.0)
-        if self._colour[i] >= 0 and self._colour[i] == self._colour[j]:
+        if self._colour_of(i) >= 0 and self._colour_of(i) == self._colour_of(j):
             move = i if g.degree(i) <= g.degree(j) else j
             self._leave(move)
             self._join(move, self._free_colour(move))
-        self._numeric_dirty = True
         if not self._parts_dirty:
             ri, rj = self._find(i), self._find(j)
             if ri != rj:
@@ -778,12 +792,13 @@ class CompassRelaxer:
                 self._hlpos[s, end] = q
                 if q >= 0:
                     tgt = int(g._src[s]) if end == 0 else int(g._dst[s])
-                    self._classes[int(self._colour[tgt])].k[q] = s
+                    cls = self._classes[int(self._colour[tgt])]
+                    cls.k[q] = s
+                    cls.version += 1
             self._hlpos[last] = -1
         for p in (i, j):
             if g.degree(p) == 0 and self._colour[p] >= 0:
                 self._leave(p)
-        self._numeric_dirty = True
         self._parts_dirty = True
 
     def remove_place(self, place_id: int) -> None:
@@ -816,7 +831,6 @@ class CompassRelaxer:
         g.remove_place(place_id)
         self._colour[last] = -1
         self._pos[last] = -1
-        self._numeric_dirty = True
         self._parts_dirty = True
 
     def pin(self, place_id: int) -> None:
@@ -854,16 +868,12 @@ class CompassRelaxer:
 
     # ------------------------------------------------------------------------------ numerics
     def _compile(self) -> None:
-        if not self._numeric_dirty:
-            return
+        """Refresh the numeric arrays of the classes a change touched (all of them after a noise change)."""
         g = self.graph
-        w = g._basis[: g.n_links] @ self._coef
-        disp = g._disp[: g.n_links]
-        wd = np.stack([w[:, 0] * disp[:, 0] + w[:, 1] * disp[:, 1],
-                       w[:, 1] * disp[:, 0] + w[:, 2] * disp[:, 1]], axis=1)
+        basis, disp = g._basis[: g.n_links], g._disp[: g.n_links]
         for cls in self._classes:
-            if cls.n:
-                cls.compile(w, wd)
+            if cls.n and (self._numeric_dirty or cls._numeric != cls.version):
+                cls.compile(basis, disp, self._coef)
         self._numeric_dirty = False
 
     def sweep(self, *, track_step: bool = True) -> float:
@@ -919,11 +929,11 @@ class CompassRelaxer:
         p = self.params
         prev = self._last_step
         self._last_step = step
-        if not step > p.auto_min_step_m or not math.isfinite(prev) or prev <= 0:
-            return False
+        if not step > p.auto_min_step_m or not prev > p.auto_min_step_m:
+            return False  # settled, or a new disturbance: watch how the next sweep shrinks it
         rho = step / prev
         if rho >= 1.0:
-            return True
+            return False  # still growing (changes keep coming): no prediction yet
         remaining = math.log(p.auto_target_step_m / step) / math.log(rho)
         return remaining > self.exact_cost_in_sweeps()
 
@@ -945,7 +955,7 @@ class CompassRelaxer:
         e = _energy_from_sums(sums, self._coef)
         if self.params.estimate_noise:
             new = self._reestimate(sums)
-            if new != self.noise:
+            if _noise_change(self.noise, new) > self.params.noise_refresh_rel:
                 self.set_noise(new)
         self.cycles += 1
         return CycleReport(energy=e, step_m=step, exact=exact, noise=self.noise)
