@@ -10,6 +10,7 @@ import sys
 # name -> (module, one-line help). Each module has ``add_arguments(parser)`` and ``main(args) -> int``,
 # and keeps its heavy imports inside ``main`` so that ``relaxmap --help`` stays fast.
 COMMANDS: dict[str, tuple[str, str]] = {
+    "run": ("services.launch.run_cli", "explore a world with every service and write the map"),
     "schema": ("services.schema_cli", "print the JSON Schema of every bus message"),
     "query": ("services.query_cli", "ask a running system (prints JSON)"),
     "bench": ("services.bench", "run the benchmarks (tables, never pass/fail)"),

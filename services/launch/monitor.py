@@ -45,6 +45,7 @@ class RunMonitor:
         self.deleted_places: set[int] = set()
         self.measured: set[tuple[int, int]] = set()
         self.inferred: set[tuple[int, int]] = set()
+        self.deleted_links: set[tuple[int, int]] = set()
         self.decode_errors = 0
         handlers = {
             topics.truth_pose(robot): (TruthPose, self._on_truth),
@@ -100,6 +101,7 @@ class RunMonitor:
 
     def _on_link_deleted(self, msg: LinkDeleted) -> None:
         self.inferred.discard(_pair(msg.from_id, msg.to_id))
+        self.deleted_links.add(_pair(msg.from_id, msg.to_id))
 
     # -- views ------------------------------------------------------------------------------------
     def progress(self) -> dict[str, float]:
@@ -127,6 +129,12 @@ class RunMonitor:
         """Coordinates of every confirmed place as first confirmed (compass dead reckoning)."""
         with self._lock:
             return {pid: (m.x_m, m.y_m) for pid, m in self.confirmed.items() if pid not in self.deleted_places}
+
+    def links_lost(self, in_map: set[tuple[int, int]]) -> set[tuple[int, int]]:
+        """Measured links missing from ``in_map`` that were not deleted on purpose (nor their places)."""
+        with self._lock:
+            return {p for p in self.measured - in_map - self.deleted_links
+                    if p[0] not in self.deleted_places and p[1] not in self.deleted_places}
 
     def close(self) -> None:
         for s in self._subs:

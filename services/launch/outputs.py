@@ -50,11 +50,10 @@ def write_grid(grid: OccupancyGrid, png: Path, yaml: Path | None) -> None:
         atomic_write(yaml, text.encode())
 
 
-def summary(*, world: str, seed: int, graph: MapGraph, stats: MapStats, links_measured: int,
+def summary(*, world: str, seed: int, graph: MapGraph, stats: MapStats, links_measured: int, links_lost: int,
             links_inferred: int, sim_time_s: float, wall_time_s: float, complete: bool,
             ate_relaxed_m: float, ate_dead_reckoning_m: float, restarts: dict[str, int]) -> dict:
     """summary.json's content (architecture.md), with loss made visible (``links_lost``)."""
-    in_map = {(min(lk.from_id, lk.to_id), max(lk.from_id, lk.to_id)) for lk in graph.links}
     return {
         "world": world,
         "seed": seed,
@@ -62,7 +61,7 @@ def summary(*, world: str, seed: int, graph: MapGraph, stats: MapStats, links_me
         "links_traversed": len(graph.links),
         "links_inferred": links_inferred,
         "links_measured": links_measured,
-        "links_lost": max(links_measured - len(in_map), 0),
+        "links_lost": links_lost,
         "sim_time_s": round(sim_time_s, 3),
         "wall_time_s": round(wall_time_s, 3),
         "real_time_factor": round(sim_time_s / wall_time_s, 2) if wall_time_s > 0 else None,
@@ -81,3 +80,74 @@ def summary(*, world: str, seed: int, graph: MapGraph, stats: MapStats, links_me
 
 def write_json(path: Path, obj: object) -> None:
     atomic_write(path, (json.dumps(obj, indent=2) + "\n").encode())
+
+
+COMPASS_HEADING_INFORMATION = 1e6  # map.g2o: headings are known from the compass (all 0), held tight
+
+
+def core_graph(graph: MapGraph):
+    """The relaxer's array graph and coordinates rebuilt from a ``map/graph`` reply."""
+    from services.relaxer.graph import MapGraph as Graph
+
+    g = Graph()
+    g.add_places([p.place_id for p in graph.places])
+    for lk in graph.links:
+        g.add_link(lk.from_id, lk.to_id, d_m=lk.d_m, theta_rad=lk.theta_rad, steps=lk.steps,
+                   mean_step_m=lk.mean_step_m, variance_m2=lk.variance_m2)
+    xy = np.array([(p.x_m, p.y_m) for p in graph.places], dtype=float).reshape(-1, 2)
+    return g, xy
+
+
+def write_map_files(graph: MapGraph, map_json: Path, map_g2o: Path) -> None:
+    """``map.json`` (compass mode, architecture.md) and ``map.g2o`` (the same map as a pose graph).
+
+    In ``map.g2o`` every place is a pose with heading 0 and every link an edge whose translation is
+    the measured displacement ``D_ji`` and whose information is ``C_ji^-1`` (Eq. 5), with a tight
+    heading information (the compass fixes all headings).
+    """
+    from services.relaxer.compass import CompassNoise, link_information
+    from services.relaxer.g2o import write_g2o
+    from services.relaxer.mapjson import write_map_json
+    from services.relaxer.pose import PoseGraph
+
+    g, xy = core_graph(graph)
+    noise = CompassNoise(s_dd_m2=graph.noise.s_dd, s_aa_rad2=graph.noise.s_aa, s_da_m_rad=graph.noise.s_da)
+    write_map_json(map_json, g, xy, noise, graph.pinned)
+    w = link_information(g, noise)
+    info = np.zeros((g.n_links, 3, 3))
+    info[:, 0, 0], info[:, 0, 1], info[:, 1, 1] = w[:, 0], w[:, 1], w[:, 2]
+    info[:, 1, 0] = w[:, 1]
+    info[:, 2, 2] = COMPASS_HEADING_INFORMATION
+    z = np.column_stack([g.disp, np.zeros(g.n_links)]) if g.n_links else np.zeros((0, 3))
+    pg = PoseGraph(ids=g.ids.copy(), i=g.src.copy(), j=g.dst.copy(), z=z, info=info)
+    write_g2o(map_g2o, pg, np.column_stack([xy, np.zeros(len(xy))]))
+
+
+def write_outputs(session, robot: str, out: Path, monitor, *, world: str, seed: int, wall_time_s: float,
+                  restarts: dict[str, int], grid_resolution_m: float = 0.15) -> dict:
+    """Ask the relaxer for the final map and write every output file of the run; returns the summary."""
+    from messages import topics
+    from services.launch.evaluate import ate_m
+    from services.runtime import query
+
+    graph = query(session, topics.map_graph(robot), type_=MapGraph, timeout_s=30)
+    stats = query(session, topics.map_stats(robot), type_=MapStats, timeout_s=30)
+    write_map_files(graph, out / "map.json", out / "map.g2o")
+    for frame, png, yaml in (("relaxed", "grid.png", "grid.yaml"), ("dead_reckoning", "grid_dead_reckoning.png", None)):
+        grid = query(session, topics.map_grid(robot), {"resolution": grid_resolution_m, "frame": frame},
+                     type_=OccupancyGrid, timeout_s=120)
+        write_grid(grid, out / png, out / yaml if yaml else None)
+    relaxed = {p.place_id: (p.x_m, p.y_m) for p in graph.places}
+    truth = monitor.place_truth()
+    first = min(relaxed) if relaxed else -1
+    in_map = {(min(lk.from_id, lk.to_id), max(lk.from_id, lk.to_id)) for lk in graph.links}
+    lost = monitor.links_lost(in_map)
+    result = summary(world=world, seed=seed, graph=graph, stats=stats, links_measured=len(monitor.measured),
+                     links_lost=len(lost), links_inferred=len(monitor.inferred), sim_time_s=monitor.sim_time_s,
+                     wall_time_s=wall_time_s, complete=bool(monitor.progress()["complete"]),
+                     ate_relaxed_m=ate_m(relaxed, truth, first),
+                     ate_dead_reckoning_m=ate_m(monitor.place_dead_reckoning(), truth, first), restarts=restarts)
+    if lost:
+        result["links_lost_pairs"] = sorted(lost)
+    write_json(out / "summary.json", result)
+    return result

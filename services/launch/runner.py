@@ -95,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
         from services.launch.outputs import write_outputs
 
         summary = write_outputs(session, robot, out, monitor, world=args.world, seed=args.seed,
-                                wall_time_s=time.monotonic() - wall0, events=events)
+                                wall_time_s=time.monotonic() - wall0,
+                                restarts={n: sv.restarts for n, sv in supervisor.services.items()})
     finally:
         codes = supervisor.stop()
         watcher.close()

@@ -127,10 +127,11 @@ def run(session: zenoh.Session, params: RelaxerParams, *, robot: str = topics.DE
         def q_stats(_key: str, _p: QueryParams):
             return core.stats()
 
-        node.subscribe(topics.places_confirmed(robot), PlaceConfirmed, on_confirmed)
-        node.subscribe(topics.links_measured(robot), LinkMeasured, on_measured)
-        node.subscribe(topics.places_deleted(robot), PlaceDeleted, on_place_deleted)
-        node.subscribe(topics.links_deleted(robot), LinkDeleted, on_link_deleted)
+        # the map's events with history: a relaxer that starts late or restarts hears all of them
+        node.subscribe(topics.places_confirmed(robot), PlaceConfirmed, on_confirmed, history=True)
+        node.subscribe(topics.links_measured(robot), LinkMeasured, on_measured, history=True)
+        node.subscribe(topics.places_deleted(robot), PlaceDeleted, on_place_deleted, history=True)
+        node.subscribe(topics.links_deleted(robot), LinkDeleted, on_link_deleted, history=True)
         node.subscribe(topics.localization(robot), LocalizationBelief, on_belief)
         node.subscribe(topics.dr_pose(robot), DeadReckonedPose, on_dr)
         node.subscribe(topics.sonar(robot), SonarScan, on_sonar)

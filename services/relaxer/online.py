@@ -4,10 +4,16 @@ Events (a place confirmed, a link measured, a place or link deleted) change the 
 relaxation cycle runs (the paper's on-line mode, with the engine's automatic strategy for large
 loops) and the cycle's outcome is returned as a map update plus the store transaction that makes it
 durable. Queries (graph, place, path, grid, stats) are answered from the same state.
+
+Every event may come more than once (the bus replays its history to a relaxer that starts late or
+restarts) and in any order across topics. So: a place already known is not added again; a deleted
+place stays deleted (its id is kept); a link measurement replaces the pair's only when it fuses at
+least as many traversals and differs; a link whose places are not known yet waits for them.
 """
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass
 
@@ -62,6 +68,15 @@ def _pair(a: int, b: int) -> tuple[int, int]:
     return (a, b) if a <= b else (b, a)
 
 
+def _same(link: MapLink, msg: LinkMeasured) -> bool:
+    """The held link is exactly this measurement (in either direction)."""
+    fwd = (link.from_id, link.to_id) == (msg.from_id, msg.to_id)
+    theta = msg.theta_rad if fwd else math.remainder(msg.theta_rad + math.pi, 2 * math.pi)
+    return (link.traversals == msg.traversals and link.steps == msg.steps and link.d_m == msg.d_m
+            and abs(math.remainder(link.theta_rad - theta, 2 * math.pi)) < 1e-12
+            and link.mean_step_m == msg.mean_step_m and link.variance_m2 == msg.variance_m2)
+
+
 @dataclass
 class CycleOutcome:
     """What one event did: the update to publish (None if nothing changed) and what to store."""
@@ -79,6 +94,7 @@ class OnlineMap:
         self.seq = 0
         self.links: dict[tuple[int, int], MapLink] = {}
         self._pending: dict[tuple[int, int], LinkMeasured] = {}  # links whose places are not known yet
+        self.deleted: set[int] = set()  # places deleted for good: a replayed confirmation stays ignored
         self.scans: list[StoredScan] = []
         self.updates = 0
         self.iterations = 0
@@ -97,6 +113,7 @@ class OnlineMap:
                                mean_step_m=lk.mean_step_m, variance_m2=lk.variance_m2)
                 self.links[_pair(lk.from_id, lk.to_id)] = lk
             self.version = stored.version
+            self.deleted = set(stored.deleted)
             if stored.noise is not None:
                 noise = _noise_core(stored.noise)
         self.relaxer = CompassRelaxer(graph, xy, noise=noise, params=params.relax)
@@ -106,7 +123,7 @@ class OnlineMap:
     # -- events -----------------------------------------------------------------------------------
     def on_place_confirmed(self, msg: PlaceConfirmed) -> CycleOutcome:
         tx = Transaction()
-        if self.relaxer.graph.has_place(msg.place_id):
+        if self.relaxer.graph.has_place(msg.place_id) or msg.place_id in self.deleted:
             return CycleOutcome(None, tx)
         self.relaxer.add_place(msg.place_id, (msg.x_m, msg.y_m))
         tx.new_places.append((msg.place_id, msg.x_m, msg.y_m, msg.stamp))
@@ -122,11 +139,22 @@ class OnlineMap:
         g = self.relaxer.graph
         if msg.from_id == msg.to_id:
             raise ValueError(f"link from place {msg.from_id} to itself")
-        if not (g.has_place(msg.from_id) and g.has_place(msg.to_id)):
-            self._pending[_pair(msg.from_id, msg.to_id)] = msg  # its places are on their way
+        key = _pair(msg.from_id, msg.to_id)
+        if msg.from_id in self.deleted or msg.to_id in self.deleted:
             return CycleOutcome(None, tx)
+        if not (g.has_place(msg.from_id) and g.has_place(msg.to_id)):
+            old = self._pending.get(key)
+            if old is None or msg.traversals >= old.traversals:
+                self._pending[key] = msg  # its places are on their way
+            return CycleOutcome(None, tx)
+        old_link = self.links.get(key)
+        if old_link is not None and (msg.traversals < old_link.traversals or _same(old_link, msg)):
+            return CycleOutcome(None, tx)  # an older measurement, or a replay of the one held
+        # a new link between two places that already have links closes a loop (or joins two parts):
+        # the residual it leaves is spread by an exact solve rather than by many sweeps (Section 7)
+        closes = old_link is None and g.degree(g.index_of(msg.from_id)) > 0 and g.degree(g.index_of(msg.to_id)) > 0
         self._put_link(msg, tx)
-        return self._cycle(msg.stamp, tx)
+        return self._cycle(msg.stamp, tx, exact=closes)
 
     def _put_link(self, msg: LinkMeasured, tx: Transaction) -> None:
         key = _pair(msg.from_id, msg.to_id)
@@ -143,12 +171,17 @@ class OnlineMap:
     def on_place_deleted(self, place_id: int, stamp: float) -> CycleOutcome:
         tx = Transaction()
         if not self.relaxer.graph.has_place(place_id):
+            if place_id not in self.deleted:
+                self.deleted.add(place_id)
+                tx.deleted_places.append(place_id)
+                self._pending = {k: v for k, v in self._pending.items() if place_id not in k}
             return CycleOutcome(None, tx)
         self.relaxer.remove_place(place_id)
         for key in [k for k in self.links if place_id in k]:
             del self.links[key]
         self._pending = {k: v for k, v in self._pending.items() if place_id not in k}
         tx.deleted_places.append(place_id)
+        self.deleted.add(place_id)
         return self._cycle(stamp, tx)
 
     def on_link_deleted(self, a: int, b: int, stamp: float) -> CycleOutcome:
@@ -170,7 +203,7 @@ class OnlineMap:
         """One relaxation cycle (also run after every event); its update and what to store."""
         return self._cycle(stamp, tx if tx is not None else Transaction())
 
-    def _cycle(self, stamp: float, tx: Transaction) -> CycleOutcome:
+    def _cycle(self, stamp: float, tx: Transaction, *, exact: bool = False) -> CycleOutcome:
         r = self.relaxer
         g = r.graph
         if g.n_places == 0:
@@ -179,6 +212,8 @@ class OnlineMap:
             tx.version = self.version
             return CycleOutcome(self._update(stamp, [], True, 0, "none"), tx)
         before = r.xy
+        if exact:
+            r.solve_exact()
         report = r.cycle()
         after = r.xy
         n_before = len(before)
@@ -189,7 +224,7 @@ class OnlineMap:
         changed = [PlacePosition(place_id=int(ids[i]), x_m=float(after[i, 0]), y_m=float(after[i, 1]))
                    for i in np.flatnonzero(moved)]
         tx.moved.extend((p.place_id, p.x_m, p.y_m) for p in changed)
-        method = "exact" if report.exact else "sweep"
+        method = "exact" if report.exact or exact else "sweep"
         self.methods[method] = self.methods.get(method, 0) + 1
         self.updates += 1
         self.iterations += 1

@@ -30,6 +30,7 @@ CREATE TABLE IF NOT EXISTS scans (
     off_y REAL NOT NULL, dr_x REAL NOT NULL, dr_y REAL NOT NULL, heading REAL NOT NULL,
     angles BLOB NOT NULL, ranges BLOB NOT NULL, beam_width REAL NOT NULL, max_range REAL NOT NULL);
 CREATE TABLE IF NOT EXISTS received (topic TEXT PRIMARY KEY, seq INTEGER NOT NULL) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS deleted_places (id INTEGER PRIMARY KEY);
 """
 SCHEMA_VERSION = 1
 
@@ -61,6 +62,7 @@ class StoredMap:
     version: int = 0
     noise: NoiseParams | None = None
     received: dict[str, int] = field(default_factory=dict)  # topic -> last sequence number applied
+    deleted: set[int] = field(default_factory=set)  # ids of places deleted for good
 
 
 @dataclass
@@ -122,8 +124,9 @@ class MapStore:
         if "s_dd" in meta:
             noise = NoiseParams(s_dd=meta["s_dd"], s_aa=meta["s_aa"], s_da=meta["s_da"])
         received = dict(db.execute("SELECT topic, seq FROM received"))
+        deleted = {r[0] for r in db.execute("SELECT id FROM deleted_places")}
         return StoredMap(places=places, initial=initial, links=links, version=int(meta.get("version", 0)),
-                         noise=noise, received=received)
+                         noise=noise, received=received, deleted=deleted)
 
     def commit(self, tx: Transaction) -> None:
         """Write one update in one transaction: all of it or, if the process dies, none of it."""
@@ -141,6 +144,7 @@ class MapStore:
             db.executemany("DELETE FROM links WHERE a=? AND b=?", tx.deleted_links)
             db.executemany("DELETE FROM links WHERE a=? OR b=?", ((i, i) for i in tx.deleted_places))
             db.executemany("DELETE FROM places WHERE id=?", ((i,) for i in tx.deleted_places))
+            db.executemany("INSERT OR IGNORE INTO deleted_places VALUES (?)", ((i,) for i in tx.deleted_places))
             db.executemany("INSERT INTO scans (stamp, place_id, off_x, off_y, dr_x, dr_y, heading, angles, ranges,"
                            " beam_width, max_range) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                            ((s.stamp, s.place_id, s.off_x, s.off_y, s.dr_x, s.dr_y, s.heading,

@@ -12,6 +12,7 @@ from typing import Any, Generic, TypeVar
 
 import msgspec
 import zenoh
+import zenoh.ext as ze
 
 from messages import topics
 from messages.codec import DecodeError, codec, encode
@@ -23,20 +24,30 @@ T = TypeVar("T")
 log = logging.getLogger("relaxmap.runtime")
 
 _MSGPACK = zenoh.Encoding("application/msgpack")
+HEARTBEAT_S = 0.5  # period of the miss-detection heartbeat of publishers with history
 QueryHandler = Callable[[str, QueryParams], Any]
 
 
 class TypedPublisher(Generic[T]):
     """Publishes messages of one type on one key, msgpack-encoded, counting them."""
 
-    def __init__(self, node: Node, key: str, type_: type[T], *, lossless: bool = True) -> None:
+    def __init__(self, node: Node, key: str, type_: type[T], *, lossless: bool = True, history: int = 0) -> None:
         self.key = key
         self.type = type_
         self._node = node
         # lossless: zenoh's congestion control "block" (a slow subscriber slows the publisher down
         # rather than losing messages); otherwise "drop" (for streams where only the latest matters)
         cc = zenoh.CongestionControl.BLOCK if lossless else zenoh.CongestionControl.DROP
-        self._pub = node.session.declare_publisher(key, encoding=_MSGPACK, congestion_control=cc)
+        if history > 0:
+            # zenoh's advanced publisher: keeps the last ``history`` samples for subscribers that join
+            # late or restart, announces itself, and sends heartbeats so subscribers detect misses
+            self._pub = ze.declare_advanced_publisher(
+                node.session, key, encoding=_MSGPACK, congestion_control=cc,
+                cache=ze.CacheConfig(history, replies_config=ze.RepliesConfig(congestion_control=cc)),
+                sample_miss_detection=ze.MissDetectionConfig(heartbeat=HEARTBEAT_S, sporadic_heartbeat=None),
+                publisher_detection=True)
+        else:
+            self._pub = node.session.declare_publisher(key, encoding=_MSGPACK, congestion_control=cc)
 
     def put(self, msg: T) -> None:
         if not isinstance(msg, self.type):
@@ -47,7 +58,7 @@ class TypedPublisher(Generic[T]):
     @property
     def matching_status(self) -> bool:
         """True when at least one subscriber matches this key."""
-        return self._pub.matching_status
+        return self._pub.matching_status if hasattr(self._pub, "matching_status") else True
 
     def undeclare(self) -> None:
         self._pub.undeclare()
@@ -107,14 +118,25 @@ class Node:
             self._reply_error(query, str(e))
 
     # -- declarations -----------------------------------------------------------------------------
-    def publisher(self, key: str, type_: type[T], *, lossless: bool = True) -> TypedPublisher[T]:
-        """A typed publisher on ``key``; ``lossless=False`` lets zenoh drop under congestion."""
-        pub = TypedPublisher(self, key, type_, lossless=lossless)
+    def publisher(self, key: str, type_: type[T], *, lossless: bool = True, history: int = 0) -> TypedPublisher[T]:
+        """A typed publisher on ``key``.
+
+        ``lossless=False`` lets zenoh drop under congestion. ``history=N`` keeps the last N messages
+        for subscribers declared with ``history=True`` that join late or restart (zenoh's advanced
+        publisher, with miss detection).
+        """
+        pub = TypedPublisher(self, key, type_, lossless=lossless, history=history)
         self._entities.append(pub)
         return pub
 
-    def subscribe(self, key: str, type_: type[T], callback: Callable[[T], None]) -> None:
-        """Call ``callback(msg)`` from ``spin`` for every message on ``key`` that decodes as ``type_``."""
+    def subscribe(self, key: str, type_: type[T], callback: Callable[[T], None], *, history: bool = False) -> None:
+        """Call ``callback(msg)`` from ``spin`` for every message on ``key`` that decodes as ``type_``.
+
+        With ``history``, the subscriber is zenoh's advanced subscriber: it first receives what the
+        publishers declared with ``history`` still hold (also from publishers that appear later), and
+        recovers missed messages from their heartbeats; misses it cannot recover are counted in
+        ``detail["missed"]``. The callback must then accept a message it has seen before.
+        """
         dec = codec(type_)
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -128,7 +150,20 @@ class Node:
             self._count("messages_in")
             self._events.put((callback, (msg,)))
 
-        self._entities.append(self.session.declare_subscriber(key, on_sample))
+        if not history:
+            self._entities.append(self.session.declare_subscriber(key, on_sample))
+            return
+        sub = ze.declare_advanced_subscriber(
+            self.session, key, on_sample, history=ze.HistoryConfig(detect_late_publishers=True),
+            recovery=ze.RecoveryConfig(heartbeat=True, periodic_queries=None), subscriber_detection=True)
+
+        def on_miss(miss: ze.Miss) -> None:
+            with self._lock:
+                self.detail["missed"] = self.detail.get("missed", 0) + miss.nb
+            log.warning("%s: %d messages on %s missed for good", self.service, miss.nb, key)
+
+        self._entities.append(sub.sample_miss_listener(on_miss))
+        self._entities.append(sub)
 
     def queryable(self, key: str, handler: QueryHandler, *, params: Iterable[str] = ()) -> None:
         """Serve ``key`` from ``spin``: ``handler(key, params)`` returns a msgspec-serialisable reply.

@@ -152,3 +152,30 @@ def test_query_command_prints_json_and_reports_errors(echo, hub):
     assert bad.returncode == 1 and "parameter 'a' must be a number" in bad.stderr
     malformed = subprocess.run([*base, "test/sum", "a"], capture_output=True, text=True, timeout=60)
     assert malformed.returncode == 2 and "not of the form k=v" in malformed.stderr
+
+
+def test_history_reaches_a_subscriber_that_starts_late(hub):
+    """A publisher with history: a subscriber declared later (or restarted) still gets every message."""
+    from services.runtime import Node, loopback_config
+
+    session, endpoint = hub
+    key = f"relaxmap/{ROBOT}/test/history"
+    with Node(session, "pub", robot=ROBOT) as pub_node:
+        pub = pub_node.publisher(key, CompassReading, history=1000)
+        for i in range(20):
+            pub.put(CompassReading(stamp=float(i), seq=i, heading_rad=0.0))
+        live: list[int] = []
+        for attempt in range(2):  # a first subscriber, then a "restarted" one
+            late = zenoh.open(loopback_config(connect=[endpoint]))
+            try:
+                with Node(late, "sub", robot=ROBOT) as sub_node:
+                    got: list[int] = []
+                    sub_node.subscribe(key, CompassReading, lambda m: got.append(m.seq), history=True)
+                    want = [*range(20), *live]
+                    assert wait_until(lambda: sub_node.spin_once(0.05) and len(got) >= len(want), 10), got
+                    live.append(100 + attempt)
+                    pub.put(CompassReading(stamp=99.0, seq=live[-1], heading_rad=0.0))
+                    assert wait_until(lambda: sub_node.spin_once(0.05) and live[-1] in got, 10), got
+                    assert got == [*want, live[-1]]
+            finally:
+                late.close()

@@ -119,3 +119,21 @@ def test_resume_from_store(tmp_path):
     a, b = again.coordinates(), m.coordinates()
     assert set(a) == set(b) and all(np.allclose(a[k], b[k], atol=1e-12) for k in a)
     assert again.links == m.links
+
+
+def test_replays_and_any_order_leave_the_same_map():
+    m = OnlineMap()
+    square(m)
+    version = m.version
+    square(m)  # the whole history again: nothing changes
+    assert m.version == version
+    m.on_link_measured(_link(0, 1, 1.01, 0.0, traversals=3))
+    m.on_link_measured(_link(0, 1, 1.0, 0.0, traversals=1))  # an older measurement comes late
+    assert m.links[(0, 1)].traversals == 3
+    m.on_place_deleted(3, 40.0)
+    m.on_place_confirmed(_place(3, 0.1, 1.15))  # a replayed confirmation of a deleted place
+    m.on_link_measured(_link(2, 3, -1, 0))
+    assert 3 not in m.coordinates() and (2, 3) not in m.links
+    m.on_place_deleted(9, 41.0)  # deleted before it was ever confirmed (topics are not ordered)
+    m.on_place_confirmed(_place(9, 3.0, 3.0))
+    assert 9 not in m.coordinates()
