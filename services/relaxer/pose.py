@@ -3,7 +3,8 @@
 The objective is GTSAM's for ``BetweenFactor<Pose2>``: ``0.5 * sum e^T Info e`` with
 ``e = Logmap(Z^-1 * (X_i^-1 * X_j))``, tangent ordered ``(x, y, theta)``. Jacobians are exact and
 vectorised; the normal equations are assembled into a sparse matrix whose pattern is computed once
-and factorised with SuperLU (symmetric mode, one fill-reducing ordering reused across iterations).
+and factorised with QDLDL (sparse LDL^T, AMD ordering, symbolic analysis kept across iterations) or,
+without it, SuperLU (symmetric mode, one fill-reducing ordering reused across iterations).
 """
 
 from __future__ import annotations
@@ -20,6 +21,11 @@ from scipy.sparse.linalg import splu
 from services.relaxer.graph import GraphError, colour_places
 from services.relaxer.se2 import half_cot_terms, wrap
 from services.relaxer.sparse import SolveError
+
+try:  # sparse LDL^T (pip wheel); SuperLU in symmetric mode otherwise
+    import qdldl as _qdldl
+except ImportError:
+    _qdldl = None
 
 __all__ = ["PoseGraph", "PoseParams", "PoseResult", "objective", "odometry_initialisation", "optimize", "residuals",
            "residuals_and_jacobians"]
@@ -184,6 +190,7 @@ class _Normal:
         self.nnz = len(uniq)
         self.diag_pos = np.flatnonzero(urow == ucol)
         self.perm: np.ndarray | None = None
+        self._ldl = None
 
     def assemble(self, graph: PoseGraph, e: np.ndarray, ji: np.ndarray, jj: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
@@ -208,6 +215,19 @@ class _Normal:
 
     def solve(self, data: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         h = sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n_free, self.n_free))
+        if _qdldl is not None:
+            # sparse LDL^T with an AMD ordering; the symbolic analysis is kept across iterations
+            try:
+                if self._ldl is None:
+                    self._ldl = _qdldl.Solver(h.tocsc())
+                else:
+                    self._ldl.update(h.tocsc())
+                x = self._ldl.solve(rhs)
+            except (ValueError, RuntimeError) as exc:
+                raise SolveError(f"singular normal equations ({exc})") from None
+            if not np.all(np.isfinite(x)):
+                raise SolveError("normal equations are singular or badly conditioned")
+            return x
         if self.perm is None:
             lu = self._factor(h.tocsc(), "MMD_AT_PLUS_A")
             self.perm = np.argsort(lu.perm_c)

@@ -164,3 +164,13 @@ def test_disconnected_pose_graph_holds_the_first_pose_of_each_part():
     r1 = optimize(g1, poses[:10])
     r2 = optimize(g2, poses[10:])
     assert res.objective == pytest.approx(r1.objective + r2.objective, rel=1e-8)
+
+
+def test_superlu_path_reaches_the_same_optimum(monkeypatch):
+    import services.relaxer.pose as pose
+
+    data = _dataset("CSAIL")
+    with_ldl = optimize(data.graph, data.poses)
+    monkeypatch.setattr(pose, "_qdldl", None)
+    without = optimize(data.graph, data.poses)
+    assert without.objective == pytest.approx(with_ldl.objective, rel=1e-9)
