@@ -149,5 +149,7 @@ def write_outputs(session, robot: str, out: Path, monitor, *, world: str, seed: 
                      ate_dead_reckoning_m=ate_m(monitor.place_dead_reckoning(), truth, first), restarts=restarts)
     if lost:
         result["links_lost_pairs"] = sorted(lost)
+    write_json(out / "truth.json", {"places": [{"id": i, "x": x, "y": y} for i, (x, y) in sorted(truth.items())],
+                                    "note": "true position of each place (the robot's when it was confirmed)"})
     write_json(out / "summary.json", result)
     return result

@@ -1,0 +1,120 @@
+"""``relaxmap run`` end to end: every service as a process, the outputs written and readable."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from services.relaxer.g2o import read_g2o
+from services.relaxer.mapjson import read_map_json
+
+RERUN = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun")
+
+
+def _run(out: Path, *extra: str, timeout_s: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "services.cli", "run", "--port", "0", "--headless", "--out",
+                           str(out), *extra], capture_output=True, text=True, timeout=timeout_s,
+                          start_new_session=True)
+
+
+def _check_outputs(out: Path) -> dict:
+    summary = json.loads((out / "summary.json").read_text())
+    for key in ("world", "seed", "places", "links_traversed", "links_inferred", "sim_time_s", "wall_time_s",
+                "exploration_complete", "energy", "ate_relaxed_m", "ate_dead_reckoning_m", "iterations",
+                "links_measured", "links_lost"):
+        assert key in summary, key
+    m = read_map_json(out / "map.json")
+    assert m.graph.n_places == summary["places"] and m.graph.n_links == summary["links_traversed"]
+    g2o = read_g2o(out / "map.g2o")
+    assert g2o.graph.n_poses == summary["places"]
+    yaml = (out / "grid.yaml").read_text()
+    assert "image: grid.png" in yaml and "resolution: 0.15" in yaml
+    for png in ("grid.png", "grid_dead_reckoning.png"):
+        img = np.asarray(Image.open(out / png))
+        assert img.ndim == 2 and img.size > 1
+        assert (img < 100).any() and (img > 250).any(), f"{png} shows no wall or no free space"
+    assert RERUN is not None, "the rerun command comes with rerun-sdk"
+    verify = subprocess.run([RERUN, "rrd", "verify", str(out / "recording.rrd")], capture_output=True, text=True,
+                            timeout=120)
+    assert verify.returncode == 0, verify.stderr
+    return summary
+
+
+def test_run_writes_every_output(tmp_path):
+    out = tmp_path / "run"
+    done = _run(out, "--world", "orebro-office", "--seed", "1", "--max-sim-time", "90")
+    assert done.returncode == 0, done.stderr[-3000:]
+    summary = _check_outputs(out)
+    assert summary["world"] == "orebro-office" and summary["seed"] == 1
+    assert summary["sim_time_s"] >= 89.0
+    assert summary["places"] >= 10 and summary["links_traversed"] >= summary["places"] - 1
+    assert summary["links_lost"] == 0, summary
+    assert all(n == 0 for n in summary["restarts"].values())
+    for log in (out / "logs").iterdir():
+        assert "Traceback" not in log.read_text(), log.read_text()[-2000:]
+
+
+def test_ctrl_c_stops_cleanly_and_writes_outputs(tmp_path):
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", "--port", "0", "--headless", "--out",
+                             str(out), "--max-sim-time", "100000"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not (out / "map.sqlite").exists():
+            time.sleep(0.2)
+        time.sleep(6)
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 0, err[-3000:]
+    assert "stopped by signal" in err
+    summary = _check_outputs(out)
+    assert summary["exploration_complete"] is False and summary["places"] >= 1
+
+
+def test_a_service_that_cannot_start_fails_the_run(tmp_path):
+    graph = json.loads((Path(__file__).resolve().parents[2] / "deploy" / "graph.json").read_text())
+    for s in graph["services"]:
+        if s["name"] == "relaxer":
+            s["args"] = ["--store", "/proc/no/such/dir/map.sqlite"]
+            s["restart"]["max_restarts"] = 1
+            s["restart"]["backoff_s"] = 0.1
+    bad = tmp_path / "graph.json"
+    bad.write_text(json.dumps(graph))
+    done = _run(tmp_path / "run", "--graph", str(bad), "--max-sim-time", "30", "--start-timeout-s", "30",
+                timeout_s=120)
+    assert done.returncode == 1
+    assert "relaxer" in done.stderr and "was not restarted" in done.stderr
+
+
+def test_bad_world_is_a_clear_error(tmp_path):
+    world = tmp_path / "w.json"
+    world.write_text('{"name": "x", "walls": [], "start": [0, 0, 0]}')
+    done = _run(tmp_path / "run", "--world", str(world), timeout_s=60)
+    assert done.returncode == 1 and "no walls" in done.stderr
+    done = _run(tmp_path / "run", "--world", "atlantis", timeout_s=60)
+    assert done.returncode == 1 and "neither a built-in world" in done.stderr
+
+
+@pytest.mark.slow
+def test_full_exploration_beats_dead_reckoning(tmp_path):
+    out = tmp_path / "run"
+    done = _run(out, "--world", "orebro-office", "--seed", "0", "--max-sim-time", "3600", timeout_s=1800)
+    assert done.returncode == 0, done.stderr[-3000:]
+    summary = _check_outputs(out)
+    assert summary["exploration_complete"], summary
+    assert summary["ate_relaxed_m"] < summary["ate_dead_reckoning_m"], summary
