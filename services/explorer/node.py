@@ -1,0 +1,276 @@
+"""explorer on the bus: poses, sonar, localizations and the map in; velocity commands and the place graph out."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+
+import zenoh
+
+from messages import topics
+from messages.types import (
+    DeadReckonedPose,
+    ExplorationStatus,
+    LinkConfidence,
+    LinkDeleted,
+    LinkInferred,
+    LocalizationBelief,
+    MapUpdate,
+    OdometryStep,
+    PlaceConfirmed,
+    PlaceDeleted,
+    PlacePredicted,
+    SonarScan,
+    VelocityCommand,
+)
+from services.explorer.core import (
+    Explorer,
+    ExplorerOutput,
+    ExplorerParams,
+    LinkConfidenceEvent,
+    LinkDeletedEvent,
+    LinkInferredEvent,
+    PlaceConfirmedEvent,
+    PlaceDeletedEvent,
+    PlaceFix,
+    PlacePredictedEvent,
+)
+from services.runtime import Node
+
+SERVICE = "explorer"
+log = logging.getLogger("relaxmap.explorer")
+
+_EVENT_TYPES = {
+    PlacePredictedEvent: (PlacePredicted, "places_predicted"),
+    PlaceConfirmedEvent: (PlaceConfirmed, "places_confirmed"),
+    PlaceDeletedEvent: (PlaceDeleted, "places_deleted"),
+    LinkInferredEvent: (LinkInferred, "links_inferred"),
+    LinkConfidenceEvent: (LinkConfidence, "links_confidence"),
+    LinkDeletedEvent: (LinkDeleted, "links_deleted"),
+}
+
+
+@dataclass(frozen=True)
+class ExplorerNodeParams:
+    dt_s: float = 0.1  # sensor_sim's tick: a pose stamped t answers tick round(t / dt_s)
+    wait_localization: bool = True  # answer a tick only once the localizations of earlier scans are in
+    localization_timeout_s: float = 2.0  # wall time to wait for one before answering without it
+    follow_map: bool = True  # move places to the relaxed coordinates of map/update
+    status_period_s: float = 1.0  # simulated time between status messages (and on every change)
+    max_sim_time_s: float | None = None  # stop after answering the tick at or past this simulated time
+    duration_s: float | None = None  # stop after this wall time
+    core: ExplorerParams = field(default_factory=ExplorerParams)  # the explorer itself
+
+
+class ExplorerShell:
+    """Answers every tick of the simulator's lockstep clock exactly once, reproducibly.
+
+    The command for tick ``k`` is computed from the dead-reckoned pose of tick ``k`` with the sonar
+    scan of an earlier tick and the recognizer's localization of that scan (normally tick ``k - 1``),
+    as :mod:`services.launch.inprocess` does. The scan of tick ``k - 1`` is in once the odometry step
+    of tick ``k`` is (zenoh keeps the order of one session's messages, and the simulator publishes a
+    scan before the next tick's odometry); its localization comes later, so the answer waits for
+    both, at most ``localization_timeout_s`` (counted in health; the tick is then answered without). A pose of a tick already answered
+    (the simulator repeats tick 0 until its first command arrives) is answered again with the same
+    command. Once exploration is complete every tick is answered with zero velocity.
+    """
+
+    def __init__(self, params: ExplorerNodeParams, publish, clock=time.monotonic) -> None:
+        self.params = params
+        self.core = Explorer(params.core)
+        self._publish = publish  # publish(topic_name, message)
+        self._clock = clock
+        self._pose: DeadReckonedPose | None = None  # the pose awaiting its answer
+        self._pose_wall = 0.0
+        self._scans: dict[int, SonarScan] = {}  # tick -> scan not yet given to the core
+        self._beliefs: dict[int, LocalizationBelief] = {}  # tick -> localization of that scan
+        self.last_tick = -1
+        self._sensor_tick = -1  # the latest tick of an odometry step
+        self._last_cmd = (0.0, 0.0)
+        self._seq: dict[str, int] = {}
+        self._status: tuple | None = None
+        self._status_stamp = -math.inf
+        self.output: ExplorerOutput | None = None
+        self.counts = {"ticks": 0, "repeats": 0, "skipped_poses": 0, "scans": 0, "fixes": 0,
+                       "localization_timeouts": 0, "map_updates": 0, "events": 0, "complete": 0,
+                       "late_scans": 0}
+
+    def _tick_of(self, stamp: float) -> int:
+        return round(stamp / self.params.dt_s)
+
+    def _next_seq(self, name: str) -> int:
+        n = self._seq.get(name, 0)
+        self._seq[name] = n + 1
+        return n
+
+    # -- inputs ---------------------------------------------------------------------------------
+    def on_dr_pose(self, msg: DeadReckonedPose) -> None:
+        tick = self._tick_of(msg.stamp)
+        if tick <= self.last_tick:
+            if tick == self.last_tick:  # the simulator repeats a tick it has no command for
+                self.counts["repeats"] += 1
+                self._command(msg.stamp, tick, *self._last_cmd)
+            return
+        if self._pose is not None and self._tick_of(self._pose.stamp) == tick:
+            self._pose = msg  # the same tick again (the simulator's start): keep waiting from the first
+        else:
+            if self._pose is not None:
+                self.counts["skipped_poses"] += 1  # real-time clock: only the newest pose is answered
+            self._pose, self._pose_wall = msg, self._clock()
+        self.try_answer()
+
+    def on_sonar(self, msg: SonarScan) -> None:
+        tick = self._tick_of(msg.stamp)
+        if tick >= self.last_tick:  # a scan of the tick just answered serves the next one
+            self._scans[tick] = msg
+        else:
+            self.counts["late_scans"] += 1  # a later tick was answered without it
+
+    def on_odometry(self, msg: OdometryStep) -> None:
+        self._sensor_tick = max(self._sensor_tick, self._tick_of(msg.stamp))
+        self.try_answer()
+
+    def on_localization(self, msg: LocalizationBelief) -> None:
+        tick = self._tick_of(msg.stamp)
+        if tick >= self.last_tick:
+            self._beliefs[tick] = msg
+        self.try_answer()
+
+    def on_map_update(self, msg: MapUpdate) -> None:
+        self.counts["map_updates"] += 1
+        if self.params.follow_map and msg.changed:
+            self.core.move_places({p.place_id: (p.x_m, p.y_m) for p in msg.changed})
+
+    def check_timeout(self) -> None:
+        """Called periodically: answer a pose whose localization is overdue."""
+        self.try_answer()
+
+    # -- answering ------------------------------------------------------------------------------
+    def try_answer(self) -> None:
+        pose = self._pose
+        if pose is None:
+            return
+        tick = self._tick_of(pose.stamp)
+        waited = self._clock() - self._pose_wall
+        if 0 < tick and self._sensor_tick < tick and waited < self.params.localization_timeout_s:
+            return  # the odometry of this tick follows the scan of the last one: wait for it
+        earlier = sorted(t for t in self._scans if t < tick)
+        missing = [t for t in earlier if t not in self._beliefs]
+        if missing and self.params.wait_localization:
+            if waited < self.params.localization_timeout_s:
+                return
+            self.counts["localization_timeouts"] += len(missing)
+            log.warning("%s: no localization for the scan of tick %d within %.1f s: answering tick %d without it",
+                        SERVICE, missing[-1], self.params.localization_timeout_s, tick)
+        scan = self._scans[earlier[-1]] if earlier else None
+        with_fix = [t for t in earlier if t in self._beliefs]
+        fix = PlaceFix.from_message(self._beliefs[with_fix[-1]]) if with_fix else None
+        for t in earlier:
+            self._scans.pop(t)
+        self._beliefs = {t: b for t, b in self._beliefs.items() if t >= tick}
+        self._pose = None
+        self.counts["scans"] += scan is not None
+        self.counts["fixes"] += fix is not None
+        out = self.core.step(pose.stamp, pose.compass, scan, fix)
+        self.output = out
+        for ev in out.events:
+            msg_type, name = _EVENT_TYPES[type(ev)]
+            self._publish(name, msg_type(stamp=pose.stamp, seq=self._next_seq(name), **asdict(ev)))
+            self.counts["events"] += 1
+        cmd = (0.0, 0.0) if out.status.complete else (out.command.v_mps, out.command.omega_radps)
+        self.counts["ticks"] += 1
+        self.counts["complete"] = int(out.status.complete)
+        self.last_tick, self._last_cmd = tick, cmd
+        self._command(pose.stamp, tick, *cmd)
+        st = out.status
+        key = (st.complete, st.confirmed, st.predicted, st.target_id)
+        if key != self._status or pose.stamp - self._status_stamp >= self.params.status_period_s - 1e-9:
+            self._status, self._status_stamp = key, pose.stamp
+            self._publish("exploration_status", ExplorationStatus(
+                stamp=pose.stamp, seq=self._next_seq("exploration_status"), complete=st.complete,
+                confirmed=st.confirmed, predicted=st.predicted, target_id=st.target_id))
+
+    def _command(self, stamp: float, tick: int, v: float, w: float) -> None:
+        self._publish("cmd_velocity", VelocityCommand(stamp=stamp, seq=self._next_seq("cmd_velocity"), v_mps=v,
+                                                      omega_radps=w, tick=tick))
+
+
+_TYPES = {"cmd_velocity": VelocityCommand, "places_predicted": PlacePredicted, "places_confirmed": PlaceConfirmed,
+          "places_deleted": PlaceDeleted, "links_inferred": LinkInferred, "links_confidence": LinkConfidence,
+          "links_deleted": LinkDeleted, "exploration_status": ExplorationStatus}
+
+
+def run(session: zenoh.Session, params: ExplorerNodeParams = ExplorerNodeParams(), *,
+        robot: str = topics.DEFAULT_ROBOT, stop: threading.Event | None = None) -> ExplorerShell:
+    """Explore until ``stop`` or a limit; return the shell (its core and counters)."""
+    stop = stop or threading.Event()
+    with Node(session, SERVICE, robot=robot) as node:
+        pubs = {name: node.publisher(getattr(topics, name)(robot), type_) for name, type_ in _TYPES.items()}
+        shell = ExplorerShell(params, lambda name, msg: pubs[name].put(msg))
+
+        def update_detail() -> None:
+            node.detail.update(shell.counts)
+            node.detail["last_tick"] = float(shell.last_tick)
+            node.detail["confirmed"] = float(sum(q.confirmed for q in shell.core.places.values()))
+            node.detail["predicted"] = float(sum(not q.confirmed for q in shell.core.places.values()))
+            node.detail["stalls"] = float(shell.core.stalls)
+
+        def on_dr_pose(msg: DeadReckonedPose) -> None:
+            shell.on_dr_pose(msg)
+            if params.max_sim_time_s is not None and shell.last_tick * params.dt_s >= params.max_sim_time_s - 1e-9:
+                log.info("%s: simulated time %.1f s reached", SERVICE, shell.last_tick * params.dt_s)
+                stop.set()
+
+        node.subscribe(topics.dr_pose(robot), DeadReckonedPose, on_dr_pose)
+        node.subscribe(topics.sonar(robot), SonarScan, shell.on_sonar)
+        node.subscribe(topics.odometry(robot), OdometryStep, shell.on_odometry)
+        node.subscribe(topics.localization(robot), LocalizationBelief, shell.on_localization)
+        node.subscribe(topics.map_update(robot), MapUpdate, shell.on_map_update)
+        update_detail()
+        wall_end = time.monotonic() + params.duration_s if params.duration_s else math.inf
+
+        def on_tick() -> None:
+            shell.check_timeout()
+            update_detail()
+            if time.monotonic() >= wall_end:
+                stop.set()
+
+        node.spin(stop, tick=on_tick, period_s=0.05)
+        update_detail()
+        log.info("%s: %d ticks, %d confirmed places, complete=%s", SERVICE, shell.counts["ticks"],
+                 int(node.detail["confirmed"]), bool(shell.counts["complete"]))
+    return shell
+
+
+def _positive(text: str) -> float:
+    value = float(text)
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
+    return value
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--seed", type=int, default=0,
+                        help="accepted for a uniform command line; the explorer draws no random numbers")
+    parser.add_argument("--dt-s", type=_positive, default=0.1, help="sensor_sim's tick (default 0.1)")
+    parser.add_argument("--no-wait-localization", action="store_true",
+                        help="answer each tick at once, without waiting for the localization of the last scan")
+    parser.add_argument("--localization-timeout-s", type=_positive, default=2.0,
+                        help="wall time to wait for a localization before answering without it (default 2)")
+    parser.add_argument("--no-follow-map", action="store_true",
+                        help="keep places in dead-reckoning coordinates (ignore map/update)")
+    parser.add_argument("--max-sim-time", type=_positive, default=None, metavar="S",
+                        help="stop after answering the tick that reaches this simulated time")
+    parser.add_argument("--duration-s", type=_positive, default=None, help="stop after this wall time")
+
+
+def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.Event) -> None:
+    """What ``python -m services.explorer`` runs once the session is open."""
+    run(session, ExplorerNodeParams(dt_s=args.dt_s, wait_localization=not args.no_wait_localization,
+                                    localization_timeout_s=args.localization_timeout_s,
+                                    follow_map=not args.no_follow_map, max_sim_time_s=args.max_sim_time,
+                                    duration_s=args.duration_s), robot=args.robot, stop=stop)

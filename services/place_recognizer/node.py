@@ -1,0 +1,276 @@
+"""place_recognizer on the bus: dead-reckoned poses, sonar and the explorer's places in; beliefs and links out."""
+
+from __future__ import annotations
+
+import argparse
+import bisect
+import logging
+import math
+import threading
+import time
+from collections import deque
+from dataclasses import asdict, dataclass, field
+
+import zenoh
+
+from messages import topics
+from messages.types import (
+    DeadReckonedPose,
+    Hypothesis,
+    LinkMeasured,
+    LocalizationBelief,
+    MapUpdate,
+    OdometryStep,
+    PlaceConfirmed,
+    PlaceDeleted,
+    SonarScan,
+    VelocityCommand,
+)
+from services.place_recognizer.core import PlaceRecognizer, PlaceRecognizerParams, RecognizerOutput
+from services.runtime import Node
+
+SERVICE = "place_recognizer"
+log = logging.getLogger("relaxmap.place_recognizer")
+
+
+@dataclass(frozen=True)
+class PlaceRecognizerNodeParams:
+    follow_map: bool = True  # move place centres to the relaxed coordinates of map/update
+    pose_history: int = 512  # dead-reckoned poses kept to pair with scans and confirmations
+    max_pending_scans: int = 64  # scans held while their pose is awaited (the oldest are dropped)
+    dt_s: float = 0.1  # sensor_sim's tick: a message stamped t belongs to tick round(t / dt_s)
+    order_timeout_s: float = 0.5  # wall time an input waits for the inputs that must come first
+    max_sim_time_s: float | None = None  # stop after the pose stamped at or past this simulated time
+    duration_s: float | None = None  # stop after this wall time
+    core: PlaceRecognizerParams = field(default_factory=PlaceRecognizerParams)  # the recognizer itself
+
+
+class RecognizerShell:
+    """Orders the inputs the way the in-process loop does, so that a lockstep run is reproducible.
+
+    The order is, tick by tick: the explorer's events of tick ``j - 1`` (places confirmed or
+    deleted), then the scan of tick ``j`` with the dead-reckoned pose of the same stamp. zenoh keeps
+    the order of messages from one session to another, which tells when an input is complete:
+
+    - the events of tick ``j - 1`` are all in once the velocity command of tick ``j - 1`` is (the
+      explorer publishes it after them), so the scan of tick ``j`` waits for that command;
+    - there is no scan of tick ``j`` once the odometry step of tick ``j + 1`` has come without one
+      (the simulator publishes a scan before the next tick's odometry), so the events of tick ``j``
+      wait for that step (or for the scan).
+
+    Without commands (nobody drives in lockstep) or sensors, an input waits at most
+    ``order_timeout_s`` of wall time. Inputs that miss their turn are applied at once (counted).
+    """
+
+    def __init__(self, params: PlaceRecognizerNodeParams,
+                 publish_belief, publish_link, clock=time.monotonic) -> None:  # publish: one message each
+        self.params = params
+        self.core = PlaceRecognizer(params.core)
+        self._publish_belief = publish_belief
+        self._publish_link = publish_link
+        self._clock = clock
+        self._stamps: deque[float] = deque()
+        self._poses: deque[DeadReckonedPose] = deque()
+        self._scans: list[tuple[SonarScan, float]] = []  # (scan, wall time of arrival), in stamp order
+        self._events: list[tuple[PlaceConfirmed | PlaceDeleted, float]] = []  # in arrival order
+        self._cmd_tick = -1  # the latest tick a velocity command answered
+        self._sensor_tick = -1  # the latest tick of an odometry step
+        self._done_tick = -1  # the tick of the latest scan or events applied
+        self._belief_seq = 0
+        self._link_seq = 0
+        self.counts = {"scans": 0, "localised": 0, "links": 0, "places": 0, "deleted": 0, "map_updates": 0,
+                       "dropped_scans": 0, "unpaired_scans": 0, "late_events": 0, "repeated_scans": 0,
+                       "order_timeouts": 0}
+        self._last_scan_seq = -1
+        self.latest_stamp = -math.inf
+
+    def _tick(self, stamp: float) -> int:
+        return round(stamp / self.params.dt_s)
+
+    # -- inputs ---------------------------------------------------------------------------------
+    def on_dr_pose(self, msg: DeadReckonedPose) -> None:
+        if self._stamps and msg.stamp < self._stamps[-1]:
+            return  # older than one already kept: dead reckoning repeats only its first pose
+        if self._stamps and msg.stamp == self._stamps[-1]:
+            self._poses[-1] = msg
+        else:
+            self._stamps.append(msg.stamp)
+            self._poses.append(msg)
+            while len(self._poses) > self.params.pose_history:
+                self._stamps.popleft()
+                self._poses.popleft()
+        self.latest_stamp = msg.stamp
+        self.drain()
+
+    def on_sonar(self, msg: SonarScan) -> None:
+        if msg.seq <= self._last_scan_seq or any(s.seq == msg.seq for s, _ in self._scans):
+            self.counts["repeated_scans"] += 1  # the simulator repeats tick 0 until it starts
+            return
+        bisect.insort(self._scans, (msg, self._clock()), key=lambda e: e[0].stamp)
+        if len(self._scans) > self.params.max_pending_scans:
+            self._scans.pop(0)
+            self.counts["dropped_scans"] += 1
+        self.drain()
+
+    def on_odometry(self, msg: OdometryStep) -> None:
+        self._sensor_tick = max(self._sensor_tick, self._tick(msg.stamp))
+        self.drain()
+
+    def on_command(self, msg: VelocityCommand) -> None:
+        self._cmd_tick = max(self._cmd_tick, msg.tick)
+        self.drain()
+
+    def on_explorer_event(self, msg: PlaceConfirmed | PlaceDeleted) -> None:
+        if self._tick(msg.stamp) < self._done_tick:
+            self.counts["late_events"] += 1  # a scan after it was processed already: apply it now
+            self._apply_event(msg)
+            return
+        self._events.append((msg, self._clock()))
+        self.drain()
+
+    def on_map_update(self, msg: MapUpdate) -> None:
+        self.counts["map_updates"] += 1
+        if self.params.follow_map and msg.changed:
+            self.core.move_places({p.place_id: (p.x_m, p.y_m) for p in msg.changed})
+
+    def drain(self) -> None:
+        """Apply every input whose turn has come (also called periodically, for the timeouts)."""
+        timeout = self.params.order_timeout_s
+        while True:
+            now = self._clock()
+            if self._events:
+                ev, since = self._events[0]
+                j = self._tick(ev.stamp)
+                scan_first = bool(self._scans) and self._tick(self._scans[0][0].stamp) <= j
+                if not scan_first:
+                    ready = self._sensor_tick >= j + 1 and bool(self._stamps) and self._stamps[-1] >= ev.stamp - 1e-9
+                    if ready or now - since >= timeout:
+                        self.counts["order_timeouts"] += not ready
+                        self._events.pop(0)
+                        self._done_tick = max(self._done_tick, j)
+                        self._apply_event(ev)
+                        continue
+            if self._scans:
+                scan, since = self._scans[0]
+                t = self._tick(scan.stamp)
+                events_first = bool(self._events) and self._tick(self._events[0][0].stamp) < t
+                has_pose = bool(self._stamps) and self._stamps[-1] >= scan.stamp - 1e-9
+                ready = has_pose and (t == 0 or self._cmd_tick >= t - 1)
+                if not events_first and (ready or (now - since >= timeout and self._stamps)):
+                    self.counts["order_timeouts"] += not ready
+                    self._scans.pop(0)
+                    self._done_tick = max(self._done_tick, t)
+                    self._step(scan)
+                    continue
+            return
+
+    # -- processing -----------------------------------------------------------------------------
+    def _pose_at(self, stamp: float) -> DeadReckonedPose | None:
+        """The pose of the same stamp, else the latest before it; None when all kept are later."""
+        i = bisect.bisect_right(self._stamps, stamp + 1e-9)
+        return self._poses[i - 1] if i > 0 else None
+
+    def _step(self, scan: SonarScan) -> None:
+        self._last_scan_seq = max(self._last_scan_seq, scan.seq)
+        dr = self._pose_at(scan.stamp)
+        if dr is None:
+            self.counts["unpaired_scans"] += 1
+            return
+        out = self.core.step(dr, scan)
+        self.counts["scans"] += 1
+        loc = out.localization
+        self.counts["localised"] += loc.place_id >= 0
+        self._publish_belief(LocalizationBelief(
+            stamp=scan.stamp, seq=self._belief_seq, place_id=loc.place_id, probability=loc.probability,
+            offset_x_m=loc.offset_x_m, offset_y_m=loc.offset_y_m, offset_var_m2=loc.offset_var_m2,
+            hypotheses=[Hypothesis(place_id=i, probability=p) for i, p in loc.hypotheses]))
+        self._belief_seq += 1
+        self._links(out, scan.stamp)
+
+    def _apply_event(self, ev: PlaceConfirmed | PlaceDeleted) -> None:
+        if isinstance(ev, PlaceDeleted):
+            self.core.remove_place(ev.place_id)
+            self.counts["deleted"] += 1
+            return
+        dr = self._pose_at(ev.stamp)
+        if dr is None:
+            dr = self._poses[0] if self._poses else None
+        if dr is None:
+            return
+        self.counts["places"] += 1
+        self._links(self.core.add_place(ev.place_id, ev.x_m, ev.y_m, dr), ev.stamp)
+
+    def _links(self, out: RecognizerOutput, stamp: float) -> None:
+        for link in out.links:
+            self._publish_link(LinkMeasured(stamp=stamp, seq=self._link_seq, **asdict(link)))
+            self._link_seq += 1
+            self.counts["links"] += 1
+
+
+def run(session: zenoh.Session, params: PlaceRecognizerNodeParams = PlaceRecognizerNodeParams(), *,
+        robot: str = topics.DEFAULT_ROBOT, stop: threading.Event | None = None) -> RecognizerShell:
+    """Recognise places until ``stop`` or a limit; return the shell (its core and counters)."""
+    stop = stop or threading.Event()
+    with Node(session, SERVICE, robot=robot) as node:
+        pub_belief = node.publisher(topics.localization(robot), LocalizationBelief)
+        pub_link = node.publisher(topics.links_measured(robot), LinkMeasured)
+        shell = RecognizerShell(params, pub_belief.put, pub_link.put)
+
+        def update_detail() -> None:
+            node.detail.update(shell.counts)
+            node.detail["known_places"] = float(shell.core.belief.ids.size)
+            node.detail["rejected_traversals"] = float(shell.core.rejected_traversals)
+            node.detail["pending_scans"] = float(len(shell._scans))
+            node.detail["pending_events"] = float(len(shell._events))
+            node.detail["last_stamp_s"] = shell.latest_stamp if math.isfinite(shell.latest_stamp) else 0.0
+
+        def on_dr_pose(msg: DeadReckonedPose) -> None:
+            shell.on_dr_pose(msg)
+            if params.max_sim_time_s is not None and msg.stamp >= params.max_sim_time_s - 1e-9:
+                log.info("%s: simulated time %.1f s reached", SERVICE, msg.stamp)
+                stop.set()
+
+        node.subscribe(topics.dr_pose(robot), DeadReckonedPose, on_dr_pose)
+        node.subscribe(topics.sonar(robot), SonarScan, shell.on_sonar)
+        node.subscribe(topics.odometry(robot), OdometryStep, shell.on_odometry)
+        node.subscribe(topics.cmd_velocity(robot), VelocityCommand, shell.on_command)
+        node.subscribe(topics.places_confirmed(robot), PlaceConfirmed, shell.on_explorer_event)
+        node.subscribe(topics.places_deleted(robot), PlaceDeleted, shell.on_explorer_event)
+        node.subscribe(topics.map_update(robot), MapUpdate, shell.on_map_update)
+        update_detail()
+        wall_end = time.monotonic() + params.duration_s if params.duration_s else math.inf
+
+        def on_tick() -> None:
+            shell.drain()
+            update_detail()
+            if time.monotonic() >= wall_end:
+                stop.set()
+
+        node.spin(stop, tick=on_tick, period_s=0.1)
+        update_detail()
+        log.info("%s: %d scans, %d localised, %d places, %d links", SERVICE, shell.counts["scans"],
+                 shell.counts["localised"], shell.counts["places"], shell.counts["links"])
+    return shell
+
+
+def _positive(text: str) -> float:
+    value = float(text)
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
+    return value
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--seed", type=int, default=0,
+                        help="accepted for a uniform command line; the recognizer draws no random numbers")
+    parser.add_argument("--no-follow-map", action="store_true",
+                        help="keep place centres in dead-reckoning coordinates (ignore map/update)")
+    parser.add_argument("--max-sim-time", type=_positive, default=None, metavar="S",
+                        help="stop after the pose that reaches this simulated time")
+    parser.add_argument("--duration-s", type=_positive, default=None, help="stop after this wall time")
+
+
+def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.Event) -> None:
+    """What ``python -m services.place_recognizer`` runs once the session is open."""
+    run(session, PlaceRecognizerNodeParams(follow_map=not args.no_follow_map, max_sim_time_s=args.max_sim_time,
+                                           duration_s=args.duration_s), robot=args.robot, stop=stop)
