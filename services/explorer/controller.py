@@ -73,7 +73,7 @@ def velocity_command(x_m: float, y_m: float, heading_rad: float, target_x_m: flo
 
 
 def clear_towards(heading_rad: float, scan: SonarScan, direction_rad: float, length_m: float, *,
-                  half_width_m: float, sample_step_m: float) -> bool:
+                  half_width_m: float, sample_step_m: float, edge_length_m: float | None = None) -> bool:
     """Whether the sonar has seen a free corridor of ``length_m`` in world direction ``direction_rad``.
 
     Notes
@@ -83,7 +83,8 @@ def clear_towards(heading_rad: float, scan: SonarScan, direction_rad: float, len
     half width ``half_width_m``, along the direction from the robot) is sampled every
     ``sample_step_m`` on its centre line and both edges; it is clear when every sample lies inside
     some beam's cone no further than that beam's range. Unseen space or space behind an echo is
-    never clear.
+    never clear. ``edge_length_m`` (default ``length_m``) shortens the edges: far ahead, the edge
+    samples fall into the side beams, whose echoes are the corridor's own walls.
     """
     angles = heading_rad + np.asarray(scan.angles_rad, dtype=float)
     ranges = np.asarray(scan.ranges_m, dtype=float)
@@ -91,6 +92,9 @@ def clear_towards(heading_rad: float, scan: SonarScan, direction_rad: float, len
     along = np.linspace(0.0, length_m, n)
     across = np.array([-half_width_m, 0.0, half_width_m])
     a, c = np.meshgrid(along, across, indexing="ij")
+    edge = length_m if edge_length_m is None else edge_length_m
+    keep = (c == 0.0) | (a <= edge + 1e-9)
+    a, c = a[keep], c[keep]
     cos_d, sin_d = np.cos(direction_rad), np.sin(direction_rad)
     px, py = (a * cos_d - c * sin_d).ravel(), (a * sin_d + c * cos_d).ravel()
     dist = np.hypot(px, py)
@@ -100,10 +104,10 @@ def clear_towards(heading_rad: float, scan: SonarScan, direction_rad: float, len
     return bool((seen_free | (dist < 1e-9)).all())
 
 
-def open_directions(heading_rad: float, scan: SonarScan, *, directions: int,
-                    length_m: float, half_width_m: float, sample_step_m: float) -> list[float]:
+def open_directions(heading_rad: float, scan: SonarScan, *, directions: int, length_m: float,
+                    half_width_m: float, sample_step_m: float, edge_length_m: float | None = None) -> list[float]:
     """World directions ``2 pi k / directions`` in which :func:`clear_towards` sees ``length_m`` free."""
     cands = [2.0 * np.pi * k / directions for k in range(directions)]
     return [float(wrap_angle(c)) for c in cands
             if clear_towards(heading_rad, scan, c, length_m, half_width_m=half_width_m,
-                             sample_step_m=sample_step_m)]
+                             sample_step_m=sample_step_m, edge_length_m=edge_length_m)]

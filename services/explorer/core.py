@@ -27,6 +27,7 @@ class ExplorerParams:
     directions: int = 8  # candidate directions of predicted places, evenly spaced from east (world frame)
     open_distance_m: float = 1.5  # free length the sonar must show along a direction for it to be open
     open_half_width_m: float = 0.2  # half width of the corridor that must be seen free (robot radius)
+    open_edge_distance_m: float = 1.0  # the corridor's edges must be seen free this far (its centre line further)
     sample_step_m: float = 0.1  # spacing of the points checked along a corridor by the free-space classifier
     min_place_separation_m: float = 0.8  # no place is predicted this close to an existing place
     merge_distance_m: float = 0.5  # predicted places this close to a newly confirmed place are removed
@@ -222,8 +223,8 @@ class Explorer:
     - *Confidence*: a new link starts at ``confidence_initial``; a traversal sets
       ``c = lambda + (1 - lambda) c`` (Eq. 17); a failed traversal (timeout, blocked, or arrival at a
       different place than the leg's end) sets ``c = (1 - lambda) c`` (Eq. 18); below
-      ``confidence_min`` the link is deleted, then every place no path from the robot's last place
-      reaches is deleted.
+      ``confidence_min`` the link is deleted, then every predicted place no path from the robot's last
+      place reaches is deleted, and every confirmed one left without a traversed or inferred link.
     - *End*: exploration is complete when no predicted place and no loop-closing leg is left.
     """
 
@@ -469,13 +470,17 @@ class Explorer:
         return events
 
     def _prune(self) -> list[Event]:
-        """Delete every place that no path from the robot's last place reaches."""
+        """Delete the places no path from the robot's last place reaches: predicted ones, and confirmed
+        ones left without any traversed or inferred link (a confirmed part cut off by one deleted link
+        stays in the map: recognising a place of it joins it again)."""
         if self.last_place == NO_PLACE:
             return []
         seen = reachable(self.graph(), self.last_place)
+        linked = {pid for key, link in self.links.items() if link.kind != PREDICTED for pid in key}
         events: list[Event] = []
         for pid in sorted(set(self.places) - seen):
-            events += self._delete_place(pid, "no path reaches it")
+            if pid in self.places and (not self.places[pid].confirmed or pid not in linked):
+                events += self._delete_place(pid, "no path reaches it")
         return events
 
     def _confirm_here(self, pid: int, frm: int, now_s: float) -> list[Event]:
@@ -500,7 +505,8 @@ class Explorer:
         if scan is not None and self._last_pose is not None:
             heading = self._scan_heading
             for direction in open_directions(heading, scan, directions=p.directions, length_m=p.open_distance_m,
-                                             half_width_m=p.open_half_width_m, sample_step_m=p.sample_step_m):
+                                             half_width_m=p.open_half_width_m, sample_step_m=p.sample_step_m,
+                                             edge_length_m=p.open_edge_distance_m):
                 cx, cy = x + p.place_spacing_m * math.cos(direction), y + p.place_spacing_m * math.sin(direction)
                 if any(math.hypot(o.x_m - cx, o.y_m - cy) < p.min_place_separation_m for o in self.places.values()):
                     continue

@@ -44,6 +44,7 @@ class PlaceRecognizerParams:
     settle_observations: int = 3  # observations at a revisited place before its link is measured
     link_fuse_gate_m: float = 1.0  # a later traversal further than this from the fused link is rejected
     max_hypotheses: int = 5  # hypotheses reported in the localization (most probable first)
+    match_min_prior: float = 0.0  # places less probable than this before the scan are not matched
 
 
 @dataclass(frozen=True)
@@ -339,7 +340,9 @@ class PlaceRecognizer:
                             hypotheses=tuple(entries[: p.max_hypotheses]))
 
     def match(self, xy: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Match the observation grid at ``xy`` (recent scans) against every place's signature.
+        """Match the observation grid at ``xy`` (recent scans) against the signatures of the places
+        whose prior probability is at least ``match_min_prior`` (the others stay unmatched, NaN: the
+        cost of a scan then grows with the places near the robot, not with the map).
 
         Returns
         -------
@@ -353,7 +356,8 @@ class PlaceRecognizer:
         scores = np.full(P, np.nan)
         offsets = np.zeros((P, 2))
         variances = np.full((P, 2), np.inf)
-        rows = [r for r, pid in enumerate(self.belief.ids) if int(pid) in self._signatures]
+        rows = [r for r, pid in enumerate(self.belief.ids)
+                if int(pid) in self._signatures and self.belief.probs[r] >= p.match_min_prior]
         if not rows or not self._scans:
             return scores, offsets, variances
         grid = build_grid([s for s, _ in self._scans], xy, half_width_m=p.grid_half_width_m, cell_m=p.cell_m,
