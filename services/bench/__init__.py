@@ -9,6 +9,7 @@ import importlib
 # heavy imports inside ``main`` so that ``relaxmap --help`` stays fast.
 BENCHES: dict[str, tuple[str, str]] = {
     "bus": ("services.bench.bus", "typed pub/sub and queries between two processes; msgspec vs json"),
+    "places": ("services.bench.places", "recognition time per scan against the map size; exploration wall time"),
     "relax": ("services.bench.relax", "pose graphs vs GTSAM LM, compass sweeps, on-line cycle cost and memory"),
     "sim": ("services.bench.sim", "simulation steps/s, ray casts/s, real-time factor of sensor_sim + DR"),
 }
