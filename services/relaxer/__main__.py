@@ -1,7 +1,8 @@
 """``python -m services.relaxer``: the relaxer service.
 
 Flags: the bus flags (``--config --mode --connect --listen --robot``), ``--store PATH`` (the SQLite map;
-an existing one is resumed), ``--duration-s S`` (stop after S wall seconds; 0 runs until a signal).
+an existing one is resumed), ``--seed S``, ``--duration-s S`` (stop after S wall seconds; 0 runs until
+a signal).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from services.runtime import service_main
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--store", default=RelaxerParams().store_path, help="SQLite file of the map")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the noise estimator's random draws")
     parser.add_argument("--duration-s", type=float, default=0.0, help="stop after this many seconds (0: never)")
 
 
@@ -26,7 +28,7 @@ def _run(session: zenoh.Session, args: argparse.Namespace, stop: threading.Event
         timer = threading.Timer(args.duration_s, stop.set)
         timer.daemon = True
         timer.start()
-    run(session, RelaxerParams(store_path=args.store), robot=args.robot, stop=stop)
+    run(session, RelaxerParams(store_path=args.store, seed=args.seed), robot=args.robot, stop=stop)
 
 
 if __name__ == "__main__":

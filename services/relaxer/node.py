@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 import msgspec
+import numpy as np
 import zenoh
 
 from messages import topics
@@ -32,6 +33,7 @@ class RelaxerParams(msgspec.Struct, frozen=True, kw_only=True):
     """Parameters of the relaxer node."""
 
     store_path: str = "relaxmap-map.sqlite"  # the SQLite file of the map (created if missing)
+    seed: int = 0  # seed of the noise estimator's posterior samples
     min_belief_for_scan: float = 0.5  # a sonar scan is kept for the grid when localised this surely
     max_grid_cells: int = 4_000_000  # a grid query that would need more cells is refused
     online: OnlineParams = OnlineParams()
@@ -41,7 +43,7 @@ def run(session: zenoh.Session, params: RelaxerParams, *, robot: str = topics.DE
         stop: threading.Event) -> None:
     store = MapStore(Path(params.store_path))
     stored = store.load()
-    core = OnlineMap(params.online, stored)
+    core = OnlineMap(params.online, stored, rng=np.random.default_rng(params.seed))
     core.scans = store.scans()
     if stored.places:
         log.info("resumed %d places, %d links, version %d from %s", len(stored.places), len(stored.links),

@@ -37,7 +37,7 @@ from messages.types import (
     PlaceReply,
 )
 from services.common.occupancy import GlobalGrid, SonarConeParams
-from services.relaxer.compass import CompassNoise, CompassParams, CompassRelaxer
+from services.relaxer.compass import CompassNoise, CompassParams, CompassRelaxer, estimate_noise_reml
 from services.relaxer.graph import MapGraph as Graph
 from services.relaxer.store import StoredMap, StoredScan, Transaction
 
@@ -46,9 +46,17 @@ class OnlineParams(msgspec.Struct, frozen=True, kw_only=True):
     """Parameters of the on-line map."""
 
     initial_noise: NoiseParams = NoiseParams(s_dd=1e-4, s_aa=1e-3, s_da=0.0)  # Figure 3 step 1
+    # how the noise parameters are re-estimated: "reml" (restricted maximum likelihood after each loop
+    # closure, held in between), "paper" (Eqs. 12-14 after every sweep, as Figure 3), "fixed"
+    noise_estimation: str = "reml"
+    reml_min_loops: int = 3  # REML needs this many independent loops (links - places + parts)
+    reml_loop_growth: float = 1.25  # ... and re-runs when the loops grew by this factor since the last
+    reml_max_rounds: int = 30  # EM rounds per re-estimation (warm-started from the current noise)
+    reml_samples: int = 16  # posterior samples of the EM's E-step
     changed_threshold_m: float = 1e-6  # a place whose coordinates move less is not in an update
     grid_resolution_m: float = 0.15  # default cell size of the global grid (Section 4.3)
-    relax: CompassParams = CompassParams()  # the relaxation engine's parameters
+    relax: CompassParams = CompassParams()  # the relaxation engine's parameters (estimate_noise is set
+    # from noise_estimation)
     cone: SonarConeParams = SonarConeParams()  # inverse sonar model of the global grid
 
 
@@ -88,8 +96,14 @@ class CycleOutcome:
 class OnlineMap:
     """The relaxer's map: places, traversed links, relaxed coordinates, scans for the grid."""
 
-    def __init__(self, params: OnlineParams = OnlineParams(), stored: StoredMap | None = None) -> None:
+    def __init__(self, params: OnlineParams = OnlineParams(), stored: StoredMap | None = None, *,
+                 rng: np.random.Generator | None = None) -> None:
+        if params.noise_estimation not in ("reml", "paper", "fixed"):
+            raise ValueError(f"noise_estimation {params.noise_estimation!r}: expected reml, paper or fixed")
         self.params = params
+        self.rng = rng if rng is not None else np.random.default_rng(0)  # REML's posterior samples
+        self.noise_estimates = 0
+        self._loops_at_estimate = 0  # loops in the map at the last noise re-estimation
         self.version = 0
         self.seq = 0
         self.links: dict[tuple[int, int], MapLink] = {}
@@ -116,7 +130,8 @@ class OnlineMap:
             self.deleted = set(stored.deleted)
             if stored.noise is not None:
                 noise = _noise_core(stored.noise)
-        self.relaxer = CompassRelaxer(graph, xy, noise=noise, params=params.relax)
+        relax = msgspec.structs.replace(params.relax, estimate_noise=params.noise_estimation == "paper")
+        self.relaxer = CompassRelaxer(graph, xy, noise=noise, params=relax)
         if graph.n_places:
             self.energy = self.relaxer.energy()
 
@@ -213,7 +228,7 @@ class OnlineMap:
             return CycleOutcome(self._update(stamp, [], True, 0, "none"), tx)
         before = r.xy
         if exact:
-            r.solve_exact()
+            self._solve(r)
         report = r.cycle()
         after = r.xy
         n_before = len(before)
@@ -233,6 +248,23 @@ class OnlineMap:
         tx.version = self.version
         tx.noise = _noise_msg(report.noise)
         return CycleOutcome(self._update(stamp, changed, bool(moved.all()), 1, method), tx)
+
+    def _solve(self, r: CompassRelaxer) -> None:
+        """The exact minimum; with REML, the noise re-estimated first (when there are loops enough)."""
+        g = r.graph
+        loops = g.n_links - g.n_places + r.n_parts()
+        p = self.params
+        if (p.noise_estimation == "reml" and loops >= p.reml_min_loops
+                and loops >= p.reml_loop_growth * self._loops_at_estimate):
+            noise, xy, _ = estimate_noise_reml(g, r.xy, noise=r.noise, rng=self.rng, pinned=r.pinned_index,
+                                               samples=self.params.reml_samples,
+                                               max_rounds=self.params.reml_max_rounds, params=r.params)
+            r.set_noise(noise)
+            r.set_xy(xy)
+            self.noise_estimates += 1
+            self._loops_at_estimate = loops
+        else:
+            r.solve_exact()
 
     def _update(self, stamp: float, changed: list[PlacePosition], full: bool, iterations: int,
                 method: str) -> MapUpdate:

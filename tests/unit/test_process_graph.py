@@ -24,7 +24,7 @@ def test_shipped_graph_is_sound():
             assert t in known
     args = {s.name: expand_args(s, {"world": "w", "seed": "3", "out": "/o", "max_sim_time": "10", "viewer": ""})
             for s in graph.services}
-    assert args["relaxer"] == ["--store", "/o/map.sqlite"]
+    assert args["relaxer"] == ["--store", "/o/map.sqlite", "--seed", "3"]
     assert args["recorder"] == ["--out", "/o"]
 
 
