@@ -3,26 +3,13 @@
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
 from messages.types import MapGraph, MapStats, OccupancyGrid
-
-
-def atomic_write(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file and a rename: never a half-written file."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+from services.common.files import atomic_write
 
 
 def grid_image(grid: OccupancyGrid) -> np.ndarray:
@@ -35,14 +22,7 @@ def grid_image(grid: OccupancyGrid) -> np.ndarray:
 def write_grid(grid: OccupancyGrid, png: Path, yaml: Path | None) -> None:
     """``png`` (8-bit grey) and, if named, its map_server ``yaml`` (origin = lower-left corner)."""
     img = grid_image(grid) if grid.width and grid.height else np.full((1, 1), 205, np.uint8)
-    fd, tmp = tempfile.mkstemp(dir=png.parent, prefix=f".{png.name}.", suffix=".png")
-    os.close(fd)
-    try:
-        Image.fromarray(img, mode="L").save(tmp, format="PNG")
-        os.replace(tmp, png)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write(png, lambda f: Image.fromarray(img, mode="L").save(f, format="PNG"))
     if yaml is not None:
         text = (f"image: {png.name}\nresolution: {grid.resolution_m:g}\n"
                 f"origin: [{grid.origin_x_m:.6f}, {grid.origin_y_m:.6f}, 0.0]\n"

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from services.common.files import atomic_write
 from services.relaxer.graph import GraphError
 from services.relaxer.pose import PoseGraph, odometry_initialisation
 
@@ -147,24 +147,6 @@ def format_g2o(graph: PoseGraph, poses: np.ndarray) -> str:
     return "\n".join(out) + "\n"
 
 
-def atomic_write_text(path: str | os.PathLike, text: str) -> None:
-    """Write ``text`` to a temporary file beside ``path`` and rename it over ``path``."""
-    p = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent if str(p.parent) else ".")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, p)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-
-
 def write_g2o(path: str | os.PathLike, graph: PoseGraph, poses: np.ndarray) -> None:
     """Write a g2o file atomically (temporary file, then rename)."""
-    atomic_write_text(path, format_g2o(graph, poses))
+    atomic_write(path, format_g2o(graph, poses))

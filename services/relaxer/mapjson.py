@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from services.relaxer.compass import CompassNoise
-from services.relaxer.g2o import atomic_write_text
+from services.common.files import atomic_write
 from services.relaxer.graph import GraphError, MapGraph
 
 __all__ = ["MapFile", "MapFileError", "format_map_json", "parse_map_json", "read_map_json", "write_map_json"]
@@ -213,4 +213,4 @@ def format_map_json(graph: MapGraph, xy: np.ndarray, noise: CompassNoise, pinned
 def write_map_json(path: str | os.PathLike, graph: MapGraph, xy: np.ndarray, noise: CompassNoise,
                    pinned_id: int) -> None:
     """Write ``map.json`` atomically (temporary file, then rename)."""
-    atomic_write_text(path, format_map_json(graph, xy, noise, pinned_id))
+    atomic_write(path, format_map_json(graph, xy, noise, pinned_id))

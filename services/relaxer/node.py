@@ -83,14 +83,20 @@ def run(session: zenoh.Session, params: RelaxerParams, *, robot: str = topics.DE
             latest["dr"] = msg
 
         def on_sonar(msg: SonarScan) -> None:
+            """Keep the scan for the grid, with the place it was taken at and the offset from it."""
             belief, dr = latest.get("belief"), latest.get("dr")
-            if not isinstance(belief, LocalizationBelief) or not isinstance(dr, DeadReckonedPose):
-                return
-            if belief.place_id < 0 or belief.probability < params.min_belief_for_scan:
+            if not isinstance(dr, DeadReckonedPose):
                 return
             pose = dr.compass
-            scan = StoredScan(msg.stamp, belief.place_id, belief.offset_x_m, belief.offset_y_m, pose.x_m, pose.y_m,
-                              pose.heading_rad, msg.angles_rad, msg.ranges_m, msg.beam_width_rad, msg.max_range_m)
+            if (isinstance(belief, LocalizationBelief) and belief.place_id >= 0
+                    and belief.probability >= params.min_belief_for_scan):
+                place = (belief.place_id, belief.offset_x_m, belief.offset_y_m)  # the recognizer's offset
+            else:
+                place = core.anchor(pose.x_m, pose.y_m)  # the nearest place, offset by dead reckoning
+            if place is None:
+                return
+            scan = StoredScan(msg.stamp, *place, pose.x_m, pose.y_m, pose.heading_rad, msg.angles_rad, msg.ranges_m,
+                              msg.beam_width_rad, msg.max_range_m)
             store.commit(core.add_scan(scan))
 
         # -- queries --------------------------------------------------------------------------------

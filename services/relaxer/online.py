@@ -55,6 +55,7 @@ class OnlineParams(msgspec.Struct, frozen=True, kw_only=True):
     reml_samples: int = 16  # posterior samples of the EM's E-step
     changed_threshold_m: float = 1e-6  # a place whose coordinates move less is not in an update
     grid_resolution_m: float = 0.15  # default cell size of the global grid (Section 4.3)
+    anchor_radius_m: float = 1.5  # a scan taken this close to a place's first position is kept with it
     relax: CompassParams = CompassParams()  # the relaxation engine's parameters (estimate_noise is set
     # from noise_estimation)
     cone: SonarConeParams = SonarConeParams()  # inverse sonar model of the global grid
@@ -109,6 +110,7 @@ class OnlineMap:
         self.links: dict[tuple[int, int], MapLink] = {}
         self._pending: dict[tuple[int, int], LinkMeasured] = {}  # links whose places are not known yet
         self.deleted: set[int] = set()  # places deleted for good: a replayed confirmation stays ignored
+        self.initial: dict[int, tuple[float, float]] = {}  # place -> position when confirmed (dead reckoning)
         self.scans: list[StoredScan] = []
         self.updates = 0
         self.iterations = 0
@@ -128,6 +130,7 @@ class OnlineMap:
                 self.links[_pair(lk.from_id, lk.to_id)] = lk
             self.version = stored.version
             self.deleted = set(stored.deleted)
+            self.initial = dict(stored.initial)
             if stored.noise is not None:
                 noise = _noise_core(stored.noise)
         relax = msgspec.structs.replace(params.relax, estimate_noise=params.noise_estimation == "paper")
@@ -141,6 +144,7 @@ class OnlineMap:
         if self.relaxer.graph.has_place(msg.place_id) or msg.place_id in self.deleted:
             return CycleOutcome(None, tx)
         self.relaxer.add_place(msg.place_id, (msg.x_m, msg.y_m))
+        self.initial[msg.place_id] = (msg.x_m, msg.y_m)
         tx.new_places.append((msg.place_id, msg.x_m, msg.y_m, msg.stamp))
         for key in [k for k in self._pending if msg.place_id in k]:
             lk = self._pending[key]
@@ -192,6 +196,7 @@ class OnlineMap:
                 self._pending = {k: v for k, v in self._pending.items() if place_id not in k}
             return CycleOutcome(None, tx)
         self.relaxer.remove_place(place_id)
+        self.initial.pop(place_id, None)
         for key in [k for k in self.links if place_id in k]:
             del self.links[key]
         self._pending = {k: v for k, v in self._pending.items() if place_id not in k}
@@ -209,6 +214,23 @@ class OnlineMap:
         self.relaxer.remove_link(a, b)
         tx.deleted_links.append((lk.from_id, lk.to_id))
         return self._cycle(stamp, tx)
+
+    def anchor(self, x_m: float, y_m: float) -> tuple[int, float, float] | None:
+        """The place a scan taken at dead-reckoned ``(x_m, y_m)`` belongs to, with the offset from it.
+
+        The place whose first (dead-reckoned) position is nearest, within ``anchor_radius_m``: dead
+        reckoning is good locally, so the offset holds even when the whole frame has drifted. Used
+        when the recognizer is not sure where the robot is.
+        """
+        if not self.initial:
+            return None
+        ids = np.fromiter(self.initial, dtype=np.int64, count=len(self.initial))
+        xy = np.array(list(self.initial.values()))
+        d2 = (xy[:, 0] - x_m) ** 2 + (xy[:, 1] - y_m) ** 2
+        k = int(np.argmin(d2))
+        if d2[k] > self.params.anchor_radius_m**2:
+            return None
+        return int(ids[k]), float(x_m - xy[k, 0]), float(y_m - xy[k, 1])
 
     def add_scan(self, scan: StoredScan) -> Transaction:
         self.scans.append(scan)

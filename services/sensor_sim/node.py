@@ -14,7 +14,7 @@ import zenoh
 
 from messages import topics
 from messages.types import CompassReading, OdometryStep, SonarScan, TruthPose, VelocityCommand
-from services.runtime import Node
+from services.runtime import AliveWatcher, Node
 from services.sensor_sim import core
 from sim.world import World, WorldError, load_world
 
@@ -33,6 +33,7 @@ class SensorSimNodeParams:
     max_sim_time_s: float | None = None  # end the run at this simulated time
     duration_s: float | None = None  # end the run after this wall time
     linger_s: float = 1.0  # wall time to stay on the bus after a bounded run, so the last frame is out
+    wait_for: tuple[str, ...] = ()  # services that must be alive (liveliness) before the run starts
     sim: core.SensorSimParams = field(default_factory=core.SensorSimParams)  # the simulation itself
 
 
@@ -73,12 +74,19 @@ def _simulate(node: Node, model: core.SimModel, params: SensorSimNodeParams, cmd
              params.seed, "lockstep" if params.lockstep else f"real-time factor {params.rtf:g}",
              topics.cmd_velocity(node.robot))
 
-    # -- start: repeat tick 0 until a command arrives -------------------------------------------------
-    while not stop.is_set() and time.monotonic() < wall_end and not cmds.started:
+    # -- start: repeat tick 0 until a command arrives (and every awaited service is alive) ---------------
+    watcher = AliveWatcher(node.session, node.robot) if params.wait_for else None
+
+    def ready() -> bool:
+        return cmds.started and (watcher is None or set(params.wait_for) <= watcher.alive)
+
+    while not stop.is_set() and time.monotonic() < wall_end and not ready():
         out.publish(frame)
         deadline = time.monotonic() + params.start_repeat_s
-        while not cmds.started and not stop.is_set() and (now := time.monotonic()) < deadline:
+        while not ready() and not stop.is_set() and (now := time.monotonic()) < deadline:
             node.spin_once(deadline - now)
+    if watcher is not None:
+        watcher.close()
     t_run = time.monotonic()
     node.detail["started"] = 1
     last_cmd_wall = time.monotonic()
@@ -238,6 +246,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-sim-time", type=_positive, default=None, metavar="S",
                         help="end the run at this simulated time (seconds)")
     parser.add_argument("--duration-s", type=_positive, default=None, help="end the run after this wall time")
+    parser.add_argument("--wait-for", action="append", default=[], metavar="SERVICE",
+                        help="do not start before SERVICE is alive on the bus (repeatable)")
 
 
 def params_from_args(args: argparse.Namespace) -> SensorSimNodeParams:
@@ -245,7 +255,7 @@ def params_from_args(args: argparse.Namespace) -> SensorSimNodeParams:
     return SensorSimNodeParams(seed=args.seed, lockstep=args.rtf is None,
                                rtf=args.rtf if args.rtf is not None else 1.0,
                                lockstep_timeout_s=args.lockstep_timeout_s, max_sim_time_s=args.max_sim_time,
-                               duration_s=args.duration_s, sim=sim)
+                               duration_s=args.duration_s, wait_for=tuple(args.wait_for), sim=sim)
 
 
 def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.Event) -> None:

@@ -137,3 +137,12 @@ def test_replays_and_any_order_leave_the_same_map():
     m.on_place_deleted(9, 41.0)  # deleted before it was ever confirmed (topics are not ordered)
     m.on_place_confirmed(_place(9, 3.0, 3.0))
     assert 9 not in m.coordinates()
+
+
+def test_anchor_finds_the_nearest_place_by_its_first_position():
+    m = OnlineMap()
+    square(m)
+    assert m.anchor(1.05, 0.0) == (1, pytest.approx(0.05), pytest.approx(-0.05))
+    assert m.anchor(10.0, 10.0) is None
+    m.on_place_deleted(1, 50.0)
+    assert m.anchor(1.05, 0.0)[0] != 1
