@@ -1,0 +1,95 @@
+"""Simulated runs of the whole loop in process, measured against ground truth (issue 5's criteria).
+
+The measures are those of :mod:`services.launch.place_metrics`; ``python -m services.launch.inprocess
+--world orebro-office --seed 0 --no-relax`` prints them for one run. Criteria the loop does not meet yet
+are strict xfails stating the measured figure, so that they turn into failures once they are met.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from services.launch.inprocess import InProcessParams, InProcessRun
+from services.launch.place_metrics import CHI2_2DOF_95, measure
+from sim.world import load_world
+
+
+def _run(world: str, sim_s: float, *, seed: int = 0, relax: bool = False, until_complete: bool = True):
+    w = load_world(world)
+    rec = InProcessRun(w, InProcessParams(seed=seed, max_sim_time_s=sim_s, relax=relax,
+                                          stop_when_complete=until_complete)).run()
+    return rec, measure(rec, w)
+
+
+def test_a_run_is_a_function_of_the_seed():
+    a, _ = _run("orebro-office", 60.0, seed=3, relax=True)
+    b, _ = _run("orebro-office", 60.0, seed=3, relax=True)
+    c, _ = _run("orebro-office", 60.0, seed=4, relax=True)
+    assert a.places and a.places == b.places and a.links == b.links and a.scans == b.scans
+    assert a.trajectory == b.trajectory and a.relaxed == b.relaxed
+    assert a.trajectory != c.trajectory
+
+
+@pytest.fixture(scope="module")
+def short_run():
+    """Ten simulated minutes of orebro-office: the corridor and the first rooms."""
+    return _run("orebro-office", 600.0)
+
+
+def test_short_run_places_offsets_and_links(short_run):
+    rec, m = short_run
+    assert m["places"] >= 30 and m["collisions"] < 0.2 * rec.ticks
+    assert m["revisits"] >= 10 and m["misrecognised_scans"] <= 0.02 * m["localised_scans"]
+    assert m["offset_error_median_m"] < 0.15
+    # measured links (about a metre) close to the true displacements between the places' true centres
+    assert m["link_error_median_m"] < 0.2
+    assert m["nees_within_95"] >= 0.85
+
+
+@pytest.fixture(scope="module")
+def orebro():
+    """A whole exploration of orebro-office (seed 0): about 5400 simulated seconds."""
+    rec, m = _run("orebro-office", 9000.0)
+    print({k: m[k] for k in ("sim_time_s", "wall_time_s", "places", "revisits", "recognition_rate",
+                             "offset_error_median_m", "link_error_rms_m", "nees_within_95", "coverage",
+                             "largest_unvisited_m2")})
+    return rec, m
+
+
+@pytest.mark.slow
+def test_orebro_exploration_ends_with_no_predicted_place(orebro):
+    rec, m = orebro
+    assert m["complete"] and m["predicted_left"] == 0
+    assert m["places"] >= 150
+
+
+@pytest.mark.slow
+def test_orebro_offset_error(orebro):
+    _, m = orebro
+    assert m["offset_error_median_m"] < 0.15  # issue 5: median offset error under 0.15 m
+
+
+@pytest.mark.slow
+def test_orebro_link_errors_consistent_with_the_covariance_model(orebro):
+    _, m = orebro
+    # normalised squared errors under Eq. 5 (noise by maximum likelihood from the true errors): a
+    # chi-square with 2 degrees of freedom puts 95% below 5.991
+    assert m["nees_within_95"] >= 0.9, CHI2_2DOF_95
+    # errors grow with the step count as Eq. 5 says: the long links' NEES is not far from the short ones'
+    assert 0.25 <= m["nees_long_over_short"] <= 4.0
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="measured 69% of 527 revisits recognised (seed 0), 186 misrecognised "
+                                       "scans: the belief loses places where dead reckoning drifts")
+def test_orebro_revisits_recognised(orebro):
+    _, m = orebro
+    assert m["recognition_rate"] >= 0.95  # issue 5: at least 95% of revisits recognised
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="measured 60% of the reachable free space within 1 m of the path "
+                                       "(seed 0); some rooms are never entered (largest 42.8 m^2)")
+def test_orebro_every_reachable_region_visited(orebro):
+    _, m = orebro
+    assert m["largest_unvisited_m2"] < 10.0 and m["coverage"] >= 0.9
