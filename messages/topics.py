@@ -112,6 +112,12 @@ def health(robot: str = DEFAULT_ROBOT, service: str = "*") -> str:
     return _key(robot, "health", service)
 
 
+# The map's events: published with history (zenoh's advanced publisher) so that a service that starts
+# late or restarts hears every one of them; this many are kept per topic.
+MAP_EVENT_HISTORY = 1_000_000
+MAP_EVENT_TOPICS = ("places_confirmed", "places_deleted", "links_measured", "links_deleted")
+
+
 def all_topics(robot: str = DEFAULT_ROBOT) -> dict[str, str]:
     """Name -> key expression of every fixed topic (queryables included), for checks and tools."""
     fns = (

@@ -209,7 +209,9 @@ def run(session: zenoh.Session, params: ExplorerNodeParams = ExplorerNodeParams(
     """Explore until ``stop`` or a limit; return the shell (its core and counters)."""
     stop = stop or threading.Event()
     with Node(session, SERVICE, robot=robot) as node:
-        pubs = {name: node.publisher(getattr(topics, name)(robot), type_) for name, type_ in _TYPES.items()}
+        pubs = {name: node.publisher(getattr(topics, name)(robot), type_,
+                                     history=topics.MAP_EVENT_HISTORY if name in topics.MAP_EVENT_TOPICS else 0)
+                for name, type_ in _TYPES.items()}
         shell = ExplorerShell(params, lambda name, msg: pubs[name].put(msg))
 
         def update_detail() -> None:

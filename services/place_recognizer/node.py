@@ -213,7 +213,7 @@ def run(session: zenoh.Session, params: PlaceRecognizerNodeParams = PlaceRecogni
     stop = stop or threading.Event()
     with Node(session, SERVICE, robot=robot) as node:
         pub_belief = node.publisher(topics.localization(robot), LocalizationBelief)
-        pub_link = node.publisher(topics.links_measured(robot), LinkMeasured)
+        pub_link = node.publisher(topics.links_measured(robot), LinkMeasured, history=topics.MAP_EVENT_HISTORY)
         shell = RecognizerShell(params, pub_belief.put, pub_link.put)
 
         def update_detail() -> None:
