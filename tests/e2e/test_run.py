@@ -110,11 +110,18 @@ def test_bad_world_is_a_clear_error(tmp_path):
     assert done.returncode == 1 and "neither a built-in world" in done.stderr
 
 
+# Simulated seconds of the long run: CI runs it at this small size; RELAXMAP_E2E_SIM_S=7200 runs a
+# whole exploration.
+LONG_RUN_SIM_S = float(os.environ.get("RELAXMAP_E2E_SIM_S", "1200"))
+
+
 @pytest.mark.slow
-def test_full_exploration_beats_dead_reckoning(tmp_path):
+def test_long_run_relaxed_map_beats_dead_reckoning(tmp_path):
     out = tmp_path / "run"
-    done = _run(out, "--world", "orebro-office", "--seed", "0", "--max-sim-time", "3600", timeout_s=1800)
+    done = _run(out, "--world", "orebro-office", "--seed", "0", "--max-sim-time", f"{LONG_RUN_SIM_S:g}",
+                timeout_s=60 + LONG_RUN_SIM_S)
     assert done.returncode == 0, done.stderr[-3000:]
     summary = _check_outputs(out)
-    assert summary["exploration_complete"], summary
+    assert summary["links_lost"] == 0, summary
+    assert summary["places"] >= LONG_RUN_SIM_S / 20, summary
     assert summary["ate_relaxed_m"] < summary["ate_dead_reckoning_m"], summary
