@@ -125,3 +125,44 @@ def test_long_run_relaxed_map_beats_dead_reckoning(tmp_path):
     assert summary["links_lost"] == 0, summary
     assert summary["places"] >= LONG_RUN_SIM_S / 20, summary
     assert summary["ate_relaxed_m"] < summary["ate_dead_reckoning_m"], summary
+
+
+def test_killed_relaxer_is_restarted_and_loses_nothing(tmp_path):
+    """SIGKILL the relaxer mid-run: the supervisor restarts it, it resumes from its store and hears the
+    events it missed again (history), and the final map holds every measured link."""
+    import zenoh
+
+    from messages.types import Health, MapStats
+    from services.runtime import QueryFailed, loopback_config, query
+    from tests.conftest import free_port
+
+    port = free_port()
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", "--port", str(port), "--headless",
+                             "--out", str(out), "--max-sim-time", "400"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    session = zenoh.open(loopback_config(connect=[f"tcp/127.0.0.1:{port}"]))
+    try:
+        def places() -> int:
+            try:
+                return query(session, "relaxmap/robot0/map/stats", type_=MapStats, timeout_s=1).places
+            except QueryFailed:
+                return 0
+
+        deadline = time.monotonic() + 120
+        while places() < 15 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert places() >= 15
+        pid = query(session, "relaxmap/robot0/health/relaxer", type_=Health).pid
+        os.kill(pid, signal.SIGKILL)
+        _, err = proc.communicate(timeout=300)
+    finally:
+        session.close()
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 0, err[-3000:]
+    assert "relaxer ended (killed by SIGKILL)" in err
+    summary = _check_outputs(out)
+    assert summary["restarts"]["relaxer"] == 1
+    assert summary["links_lost"] == 0, summary
