@@ -14,7 +14,7 @@ import zenoh
 from messages import topics
 from messages.types import CompassReading, DeadReckonedPose, OdometryStep
 from services.dead_reckoning import core
-from services.runtime import Node
+from services.runtime import Node, positive_float
 
 SERVICE = "dead_reckoning"
 log = logging.getLogger("relaxmap.dead_reckoning")
@@ -80,19 +80,13 @@ def _update_detail(node: Node, state: core.DrState) -> None:
     d["dropped"] = state.dropped
 
 
-def _positive(text: str) -> float:
-    value = float(text)
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
-    return value
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="accepted for a uniform command line; the filter "
                                                              "draws no random numbers")
-    parser.add_argument("--max-sim-time", type=_positive, default=None, metavar="S",
+    parser.add_argument("--max-sim-time", type=positive_float, default=None, metavar="S",
                         help="stop after integrating the step that reaches this simulated time")
-    parser.add_argument("--duration-s", type=_positive, default=None, help="stop after this wall time")
+    parser.add_argument("--duration-s", type=positive_float, default=None, help="stop after this wall time")
 
 
 def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.Event) -> None:

@@ -39,7 +39,7 @@ from services.explorer.core import (
     PlaceFix,
     PlacePredictedEvent,
 )
-from services.runtime import Node
+from services.runtime import Node, positive_float
 
 SERVICE = "explorer"
 log = logging.getLogger("relaxmap.explorer")
@@ -248,26 +248,20 @@ def run(session: zenoh.Session, params: ExplorerNodeParams = ExplorerNodeParams(
     return shell
 
 
-def _positive(text: str) -> float:
-    value = float(text)
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
-    return value
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0,
                         help="accepted for a uniform command line; the explorer draws no random numbers")
-    parser.add_argument("--dt-s", type=_positive, default=0.1, help="sensor_sim's tick (default 0.1)")
+    parser.add_argument("--dt-s", type=positive_float, default=0.1, help="sensor_sim's tick (default 0.1)")
     parser.add_argument("--no-wait-localization", action="store_true",
                         help="answer each tick at once, without waiting for the localization of the last scan")
-    parser.add_argument("--localization-timeout-s", type=_positive, default=2.0,
+    parser.add_argument("--localization-timeout-s", type=positive_float, default=2.0,
                         help="wall time to wait for a localization before answering without it (default 2)")
     parser.add_argument("--no-follow-map", action="store_true",
                         help="keep places in dead-reckoning coordinates (ignore map/update)")
-    parser.add_argument("--max-sim-time", type=_positive, default=None, metavar="S",
+    parser.add_argument("--max-sim-time", type=positive_float, default=None, metavar="S",
                         help="stop after answering the tick that reaches this simulated time")
-    parser.add_argument("--duration-s", type=_positive, default=None, help="stop after this wall time")
+    parser.add_argument("--duration-s", type=positive_float, default=None, help="stop after this wall time")
 
 
 def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.Event) -> None:

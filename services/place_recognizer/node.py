@@ -27,7 +27,7 @@ from messages.types import (
     VelocityCommand,
 )
 from services.place_recognizer.core import PlaceRecognizer, PlaceRecognizerParams, RecognizerOutput
-from services.runtime import Node
+from services.runtime import Node, positive_float
 
 SERVICE = "place_recognizer"
 log = logging.getLogger("relaxmap.place_recognizer")
@@ -253,21 +253,15 @@ def run(session: zenoh.Session, params: PlaceRecognizerNodeParams = PlaceRecogni
     return shell
 
 
-def _positive(text: str) -> float:
-    value = float(text)
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
-    return value
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0,
                         help="accepted for a uniform command line; the recognizer draws no random numbers")
     parser.add_argument("--no-follow-map", action="store_true",
                         help="keep place centres in dead-reckoning coordinates (ignore map/update)")
-    parser.add_argument("--max-sim-time", type=_positive, default=None, metavar="S",
+    parser.add_argument("--max-sim-time", type=positive_float, default=None, metavar="S",
                         help="stop after the pose that reaches this simulated time")
-    parser.add_argument("--duration-s", type=_positive, default=None, help="stop after this wall time")
+    parser.add_argument("--duration-s", type=positive_float, default=None, help="stop after this wall time")
 
 
 def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.Event) -> None:

@@ -12,10 +12,17 @@ from services.runtime.config import (
 from services.runtime.errors import QueryError, QueryFailed
 from services.runtime.node import Node, TypedPublisher
 from services.runtime.params import QueryParams
-from services.runtime.service import service_main, setup_logging, shutdown_event
+from services.runtime.service import (
+    nonnegative_float,
+    positive_float,
+    service_main,
+    setup_logging,
+    shutdown_event,
+)
 
 __all__ = [
     "HUB_PORT", "AliveWatcher", "Node", "QueryError", "QueryFailed", "QueryParams", "TypedPublisher",
     "add_bus_arguments", "alive_services", "config_from_args", "deploy_file", "load_config",
-    "loopback_config", "query", "service_main", "setup_logging", "shutdown_event",
+    "loopback_config", "nonnegative_float", "positive_float", "query", "service_main", "setup_logging",
+    "shutdown_event",
 ]

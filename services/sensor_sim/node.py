@@ -14,7 +14,7 @@ import zenoh
 
 from messages import topics
 from messages.types import CompassReading, OdometryStep, SonarScan, TruthPose, VelocityCommand
-from services.runtime import AliveWatcher, Node
+from services.runtime import AliveWatcher, Node, nonnegative_float, positive_float
 from services.sensor_sim import core
 from sim.world import World, WorldError, load_world
 
@@ -212,18 +212,6 @@ def _world_arg(text: str) -> World:
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
-def _nonneg(text: str) -> float:
-    value = float(text)
-    if not (math.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text!r}")
-    return value
-
-
-def _positive(text: str) -> float:
-    value = _nonneg(text)
-    if value == 0:
-        raise argparse.ArgumentTypeError("must be > 0")
-    return value
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -233,19 +221,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     clock = parser.add_mutually_exclusive_group()
     clock.add_argument("--lockstep", dest="rtf", action="store_const", const=None,
                        help="tick k+1 starts once the command for tick k is in (the default)")
-    clock.add_argument("--rtf", type=_nonneg, metavar="FACTOR",
+    clock.add_argument("--rtf", type=nonnegative_float, metavar="FACTOR",
                        help="real-time factor instead of lockstep: 1 real time, 10 ten times faster, "
                             "0 as fast as possible")
-    parser.add_argument("--dt-s", type=_positive, default=0.1, help="simulated time per tick (default 0.1)")
-    parser.add_argument("--sonar-every-m", type=_nonneg, default=0.5,
+    parser.add_argument("--dt-s", type=positive_float, default=0.1, help="simulated time per tick (default 0.1)")
+    parser.add_argument("--sonar-every-m", type=nonnegative_float, default=0.5,
                         help="sonar scan after this much travel (0: never by distance; default 0.5)")
-    parser.add_argument("--sonar-period-s", type=_nonneg, default=0.0,
+    parser.add_argument("--sonar-period-s", type=nonnegative_float, default=0.0,
                         help="sonar scan at this simulated period as well (0: off, the default)")
-    parser.add_argument("--lockstep-timeout-s", type=_positive, default=2.0,
+    parser.add_argument("--lockstep-timeout-s", type=positive_float, default=2.0,
                         help="wall time to wait for a tick's command before stopping the robot for that tick")
-    parser.add_argument("--max-sim-time", type=_positive, default=None, metavar="S",
+    parser.add_argument("--max-sim-time", type=positive_float, default=None, metavar="S",
                         help="end the run at this simulated time (seconds)")
-    parser.add_argument("--duration-s", type=_positive, default=None, help="end the run after this wall time")
+    parser.add_argument("--duration-s", type=positive_float, default=None, help="end the run after this wall time")
     parser.add_argument("--wait-for", action="append", default=[], metavar="SERVICE",
                         help="do not start before SERVICE is alive on the bus (repeatable)")
 
