@@ -7,6 +7,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -93,3 +94,28 @@ def wait_until(predicate, timeout_s: float, period_s: float = 0.02) -> bool:
             return True
         time.sleep(period_s)
     return predicate()
+
+
+class Collector:
+    """Collects the decoded messages of one key (from zenoh's threads)."""
+
+    def __init__(self, session, key, type_):
+        from messages.codec import codec
+
+        self.msgs = []
+        self._lock = threading.Lock()
+        dec = codec(type_)
+
+        def on_sample(sample):
+            msg = dec.decode(sample.payload.to_bytes())
+            with self._lock:
+                self.msgs.append(msg)
+
+        self._sub = session.declare_subscriber(key, on_sample)
+
+    def snapshot(self):
+        with self._lock:
+            return list(self.msgs)
+
+    def close(self):
+        self._sub.undeclare()

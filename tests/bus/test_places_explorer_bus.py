@@ -3,45 +3,21 @@
 from __future__ import annotations
 
 import os
-import threading
 
 import pytest
 
 from messages import topics
-from messages.codec import codec
 from messages.types import ExplorationStatus, Health, LinkMeasured, LocalizationBelief, PlaceConfirmed, VelocityCommand
 from services.launch.inprocess import InProcessParams, InProcessRun
 from services.runtime import AliveWatcher, query
 from services.sensor_sim.core import SensorSimParams
 from sim.world import load_world
-from tests.conftest import wait_until
+from tests.conftest import Collector, wait_until
 
 WORLD = "orebro-office"
 SIM_S = 40.0  # simulated seconds of the run: the first places along the corridor
 SONAR = ["--sonar-every-m", "0.2", "--sonar-period-s", "1.0"]  # as the in-process loop's default
 
-
-class Recorder:
-    """Collects decoded messages of one key (from zenoh's threads)."""
-
-    def __init__(self, session, key, type_):
-        self.msgs = []
-        self._lock = threading.Lock()
-        dec = codec(type_)
-
-        def on_sample(sample):
-            msg = dec.decode(sample.payload.to_bytes())
-            with self._lock:
-                self.msgs.append(msg)
-
-        self._sub = session.declare_subscriber(key, on_sample)
-
-    def snapshot(self):
-        with self._lock:
-            return list(self.msgs)
-
-    def close(self):
-        self._sub.undeclare()
 
 
 def _start(processes, endpoint, robot, seed, watcher):
@@ -73,11 +49,11 @@ def test_localization_places_links_and_health_over_the_bus(hub, processes, inpro
     session, endpoint = hub
     robot = f"busplaces{os.getpid()}"
     watcher = AliveWatcher(session, robot)
-    beliefs = Recorder(session, topics.localization(robot), LocalizationBelief)
-    confirmed = Recorder(session, topics.places_confirmed(robot), PlaceConfirmed)
-    links = Recorder(session, topics.links_measured(robot), LinkMeasured)
-    status = Recorder(session, topics.exploration_status(robot), ExplorationStatus)
-    cmds = Recorder(session, topics.cmd_velocity(robot), VelocityCommand)
+    beliefs = Collector(session, topics.localization(robot), LocalizationBelief)
+    confirmed = Collector(session, topics.places_confirmed(robot), PlaceConfirmed)
+    links = Collector(session, topics.links_measured(robot), LinkMeasured)
+    status = Collector(session, topics.exploration_status(robot), ExplorationStatus)
+    cmds = Collector(session, topics.cmd_velocity(robot), VelocityCommand)
     last_tick = round(SIM_S / 0.1)
     try:
         _start(processes, endpoint, robot, 5, watcher)

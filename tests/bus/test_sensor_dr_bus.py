@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import threading
 
 import pytest
 
@@ -21,33 +20,11 @@ from messages.types import (
 from services.runtime import AliveWatcher, query
 from services.sensor_sim.driver import RouteCommander
 from sim.world import load_world
-from tests.conftest import wait_until
+from tests.conftest import Collector, wait_until
 
 WORLD = load_world("manchester-corridors")
 ROUTE = WORLD.routes["outer-loop"]
 
-
-class Recorder:
-    """Collects decoded messages of one key (from zenoh's threads)."""
-
-    def __init__(self, session, key, type_):
-        self.msgs = []
-        self._lock = threading.Lock()
-        dec = codec(type_)
-
-        def on_sample(sample):
-            msg = dec.decode(sample.payload.to_bytes())
-            with self._lock:
-                self.msgs.append(msg)
-
-        self._sub = session.declare_subscriber(key, on_sample)
-
-    def snapshot(self):
-        with self._lock:
-            return list(self.msgs)
-
-    def close(self):
-        self._sub.undeclare()
 
 
 def _start(processes, endpoint, robot, *sim_args, dr_args=()):
@@ -66,9 +43,9 @@ def test_poses_arrive_and_health_is_served(hub, processes):
     session, endpoint = hub
     robot = f"busdr{os.getpid()}"
     watcher = AliveWatcher(session, robot)
-    dr_poses = Recorder(session, topics.dr_pose(robot), DeadReckonedPose)
-    truth = Recorder(session, topics.truth_pose(robot), TruthPose)
-    sonar = Recorder(session, topics.sonar(robot), SonarScan)
+    dr_poses = Collector(session, topics.dr_pose(robot), DeadReckonedPose)
+    truth = Collector(session, topics.truth_pose(robot), TruthPose)
+    sonar = Collector(session, topics.sonar(robot), SonarScan)
     # the commander answers ticks 0..199: the lockstep run then waits at tick 200
     commander = RouteCommander(session, ROUTE, robot=robot, source="dr", origin=WORLD.start[:2], until_tick=200)
     try:
@@ -104,8 +81,8 @@ def test_poses_arrive_and_health_is_served(hub, processes):
 
 def _lockstep_run(session, processes, endpoint, robot, seed, ticks):
     """One DR-driven lockstep run, both processes bounded by the simulated time."""
-    truth = Recorder(session, topics.truth_pose(robot), TruthPose)
-    odo = Recorder(session, topics.odometry(robot), OdometryStep)
+    truth = Collector(session, topics.truth_pose(robot), TruthPose)
+    odo = Collector(session, topics.odometry(robot), OdometryStep)
     commander = RouteCommander(session, ROUTE, robot=robot, source="dr", origin=WORLD.start[:2])
     # a generous timeout: a tick that timed out would change the trajectory, however loaded the machine
     sim, dr = _start(processes, endpoint, robot, "--seed", str(seed), "--lockstep", "--lockstep-timeout-s", "30",
@@ -150,7 +127,7 @@ def test_real_time_factor_mode_keeps_pace(hub, processes):
     session, endpoint = hub
     robot = f"rtf{os.getpid()}"
     watcher = AliveWatcher(session, robot)
-    truth = Recorder(session, topics.truth_pose(robot), TruthPose)
+    truth = Collector(session, topics.truth_pose(robot), TruthPose)
     commander = RouteCommander(session, ROUTE, robot=robot, source="truth")
     try:
         sim, _dr = _start(processes, endpoint, robot, "--rtf", "10", "--max-sim-time", "10")
@@ -172,7 +149,7 @@ def test_lockstep_never_waits_forever(hub, processes):
     session, endpoint = hub
     robot = f"stall{os.getpid()}"
     watcher = AliveWatcher(session, robot)
-    truth = Recorder(session, topics.truth_pose(robot), TruthPose)
+    truth = Collector(session, topics.truth_pose(robot), TruthPose)
     pub = session.declare_publisher(topics.cmd_velocity(robot))
     try:
         sim, _dr = _start(processes, endpoint, robot, "--lockstep", "--lockstep-timeout-s", "0.3",
