@@ -8,6 +8,7 @@ import importlib
 # name -> module; each module has ``add_arguments(parser)`` and ``main(args) -> int``, and keeps its
 # heavy imports inside ``main`` so that ``relaxmap --help`` stays fast.
 BENCHES: dict[str, tuple[str, str]] = {
+    "map": ("services.bench.mapping", "latency from a link measurement to its map update, by map size"),
     "bus": ("services.bench.bus", "typed pub/sub and queries between two processes; msgspec vs json"),
     "places": ("services.bench.places", "recognition time per scan against the map size; exploration wall time"),
     "relax": ("services.bench.relax", "pose graphs vs GTSAM LM, compass sweeps, on-line cycle cost and memory"),
