@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -14,14 +13,10 @@ from pathlib import Path
 
 import pytest
 
+from services.runtime.procs import free_port  # noqa: F401 (tests import it from here)
+
 REPO = Path(__file__).resolve().parents[1]
 DATASETS = Path(os.environ.get("RELAXMAP_DATASETS", REPO.parent / "shared" / "datasets"))
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture

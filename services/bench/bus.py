@@ -13,9 +13,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     import json
-    import os
-    import signal
-    import socket
     import subprocess
     import sys
     import time
@@ -28,11 +25,9 @@ def main(args: argparse.Namespace) -> int:
     from services.bench import bus_peer
     from services.bench.table import print_table, time_call
     from services.runtime import AliveWatcher, Node, loopback_config, query
+    from services.runtime.procs import free_port, stop_group
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    endpoint = f"tcp/127.0.0.1:{port}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     session = zenoh.open(loopback_config(listen=[endpoint]))
     peer = subprocess.Popen([sys.executable, "-m", "services.bench.bus_peer", "--robot", "bench",
                              "--connect", endpoint], start_new_session=True,
@@ -103,12 +98,7 @@ def main(args: argparse.Namespace) -> int:
         node.close()
         raw.undeclare()
     finally:
-        os.killpg(peer.pid, signal.SIGTERM)
-        try:
-            peer.wait(10)
-        except subprocess.TimeoutExpired:
-            os.killpg(peer.pid, signal.SIGKILL)
-            peer.wait()
+        stop_group(peer)
         session.close()
     print_table(f"bus: two processes on loopback ({n} messages, latency at {args.rate_hz:g} Hz)",
                 ["what", "messages/s", "p50 us", "p90 us", "p99 us", "ratio to raw"], rows)

@@ -36,7 +36,6 @@ def _events(office, first: int, last: int, stamp0: float):
 
 def main(args: argparse.Namespace) -> int:
     import os
-    import signal
     import subprocess
     import sys
     import tempfile
@@ -53,6 +52,7 @@ def main(args: argparse.Namespace) -> int:
     from services.relaxer.online import OnlineMap
     from services.relaxer.synthetic import office_map
     from services.runtime import AliveWatcher, loopback_config, query
+    from services.runtime.procs import free_port, stop_group
 
     robot = "benchmap"
     rows = []
@@ -71,9 +71,7 @@ def main(args: argparse.Namespace) -> int:
             if isinstance(msg, LinkMeasured):
                 core_ms.append((time.perf_counter() - t) * 1e3)
         with tempfile.TemporaryDirectory() as tmp:
-            with __import__("socket").socket() as s:
-                s.bind(("127.0.0.1", 0))
-                endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+            endpoint = f"tcp/127.0.0.1:{free_port()}"
             session = zenoh.open(loopback_config(listen=[endpoint]))
             proc = subprocess.Popen([sys.executable, "-m", "services.relaxer", "--robot", robot, "--connect", endpoint,
                                      "--store", os.path.join(tmp, "map.sqlite")], start_new_session=True,
@@ -120,12 +118,7 @@ def main(args: argparse.Namespace) -> int:
                 for p in pubs.values():
                     p.undeclare()
             finally:
-                os.killpg(proc.pid, signal.SIGTERM)
-                try:
-                    proc.wait(10)
-                except subprocess.TimeoutExpired:
-                    os.killpg(proc.pid, signal.SIGKILL)
-                    proc.wait()
+                stop_group(proc)
                 session.close()
         b, c = np.array(bus_ms), np.array(core_ms)
         rows.append((stats.places, len(b), *np.percentile(b, [50, 90, 99]), float(b.max()),

@@ -100,8 +100,6 @@ def _bus_run(args: argparse.Namespace, world, route, dt: float, lockstep: bool, 
     """One run of sensor_sim and dead_reckoning as processes, driven from this process; from the first
     command to the dead-reckoned pose of the last tick."""
     import os
-    import signal
-    import socket
     import subprocess
     import sys
     import threading
@@ -113,12 +111,10 @@ def _bus_run(args: argparse.Namespace, world, route, dt: float, lockstep: bool, 
     from messages.codec import codec
     from messages.types import DeadReckonedPose, Health
     from services.runtime import AliveWatcher, QueryFailed, loopback_config, query
+    from services.runtime.procs import free_port, stop_group
     from services.sensor_sim.driver import RouteCommander
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    endpoint = f"tcp/127.0.0.1:{port}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     robot = f"bench{os.getpid()}"
     T = args.sim_time
     done = threading.Event()
@@ -169,13 +165,7 @@ def _bus_run(args: argparse.Namespace, world, route, dt: float, lockstep: bool, 
                 gaps = collisions = -1
         finally:
             for p in procs:
-                if p.poll() is None:
-                    os.killpg(p.pid, signal.SIGTERM)
-                try:
-                    p.wait(10)
-                except subprocess.TimeoutExpired:
-                    os.killpg(p.pid, signal.SIGKILL)
-                    p.wait()
+                stop_group(p)
             commander.close()
             sub.undeclare()
             watcher.close()

@@ -86,8 +86,8 @@ def check_graph(graph: ProcessGraph) -> list[str]:
 
 
 def expand_args(spec: ServiceSpec, values: dict[str, str]) -> list[str]:
-    """The service's extra arguments with ``{name}`` placeholders filled in (empty results dropped)."""
+    """The service's extra arguments with their ``{name}`` fields filled in (empty results dropped)."""
     try:
         return [arg for a in spec.args if (arg := a.format(**values))]
     except KeyError as e:
-        raise GraphError(f"{spec.name}: unknown placeholder {e} in args") from None
+        raise GraphError(f"{spec.name}: unknown field {e} in args") from None

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import socket
 import time
 from pathlib import Path
 
@@ -18,18 +17,13 @@ from services.launch.graph import GraphError, load_graph
 from services.launch.monitor import RunMonitor
 from services.launch.supervisor import Supervisor
 from services.runtime import AliveWatcher, deploy_file, loopback_config, shutdown_event
+from services.runtime.procs import free_port
 
 log = logging.getLogger("relaxmap.run")
 
 
 class RunError(RuntimeError):
     """The run could not start or could not go on; the message says why."""
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def resolve_world(world: str) -> str:
@@ -58,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
         raise RunError(str(e)) from e
     world = resolve_world(args.world)
     robot = topics.DEFAULT_ROBOT
-    port = args.port or _free_port()
+    port = args.port or free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     try:
         session = zenoh.open(loopback_config(listen=[endpoint]))

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -18,8 +17,7 @@ from services.relaxer.mapjson import MapFileError, format_map_json, parse_map_js
 from services.relaxer.pose import objective
 from services.relaxer.synthetic import office_map
 
-DATASETS = Path(os.environ.get("RELAXMAP_DATASETS",
-                               Path(__file__).resolve().parents[2].parent / "shared" / "datasets"))
+from tests.conftest import DATASETS  # noqa: E402 (after the gtsam check where there is one)
 
 INFO = "1 0 0 1 0 1"
 GOOD_G2O = f"""VERTEX_SE2 0 0 0 0

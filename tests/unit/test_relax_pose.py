@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,8 +12,7 @@ from services.relaxer.se2 import between, compose, inverse, logmap
 
 gtsam = pytest.importorskip("gtsam")
 
-DATASETS = Path(os.environ.get("RELAXMAP_DATASETS",
-                               Path(__file__).resolve().parents[2].parent / "shared" / "datasets"))
+from tests.conftest import DATASETS  # noqa: E402 (after the gtsam check where there is one)
 
 
 def _dataset(name: str):
