@@ -43,7 +43,7 @@ def resolve_world(world: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    console = Console(stderr=True)
+    console = Console(stderr=True, log_path=False)
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     try:
