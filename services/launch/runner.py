@@ -16,7 +16,7 @@ from messages import topics
 from services.launch.graph import GraphError, load_graph
 from services.launch.monitor import RunMonitor
 from services.launch.supervisor import Supervisor
-from services.runtime import AliveWatcher, deploy_file, loopback_config, shutdown_event
+from services.runtime import AliveWatcher, QueryFailed, deploy_file, loopback_config, shutdown_event
 from services.runtime.procs import free_port
 
 log = logging.getLogger("relaxmap.run")
@@ -62,13 +62,7 @@ def run(args: argparse.Namespace) -> int:
     values = {"world": world, "seed": str(args.seed), "out": str(out), "max_sim_time": f"{args.max_sim_time:g}",
               "viewer": "--viewer" if args.viewer else ""}
     common = ["--connect", endpoint, "--listen", "tcp/127.0.0.1:0", "--robot", robot]
-    events: list[str] = []
-
-    def on_event(msg: str) -> None:
-        events.append(msg)
-        console.log(msg)
-
-    supervisor = Supervisor(graph, common_args=common, values=values, log_dir=out / "logs", on_event=on_event)
+    supervisor = Supervisor(graph, common_args=common, values=values, log_dir=out / "logs", on_event=console.log)
     monitor = RunMonitor(session, robot)
     watcher = AliveWatcher(session, robot, on_change=lambda name, up: None if up else log.info("%s left", name))
     wall0 = time.monotonic()
@@ -79,18 +73,22 @@ def run(args: argparse.Namespace) -> int:
             supervisor.poll()
             if supervisor.failure:
                 raise RunError(supervisor.failure)
-            if time.monotonic() > deadline or stop.is_set():
-                missing = sorted(set(graph.names()) - watcher.alive)
-                raise RunError(f"not alive after {args.start_timeout_s:g} s: {', '.join(missing)} "
-                               f"(logs in {out / 'logs'})")
-        on_event(f"all {len(graph.services)} services alive on {endpoint}")
+            missing = ", ".join(sorted(set(graph.names()) - watcher.alive))
+            if stop.is_set():
+                raise RunError(f"stopped by signal before every service was alive (missing: {missing})")
+            if time.monotonic() > deadline:
+                raise RunError(f"not alive after {args.start_timeout_s:g} s: {missing} (logs in {out / 'logs'})")
+        console.log(f"all {len(graph.services)} services alive on {endpoint}")
         reason = _watch(args, supervisor, monitor, stop, console)
-        on_event(f"run ends: {reason}")
+        console.log(f"run ends: {reason}")
         from services.launch.outputs import write_outputs
 
-        summary = write_outputs(session, robot, out, monitor, world=args.world, seed=args.seed,
-                                wall_time_s=time.monotonic() - wall0,
-                                restarts={n: sv.restarts for n, sv in supervisor.services.items()})
+        try:
+            summary = write_outputs(session, robot, out, monitor, world=args.world, seed=args.seed,
+                                    wall_time_s=time.monotonic() - wall0,
+                                    restarts={n: sv.restarts for n, sv in supervisor.services.items()})
+        except QueryFailed as e:
+            raise RunError(f"could not get the final map from the relaxer: {e} (logs in {out / 'logs'})") from e
     finally:
         codes = supervisor.stop()
         watcher.close()
