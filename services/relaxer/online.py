@@ -140,6 +140,9 @@ class OnlineMap:
 
     # -- events -----------------------------------------------------------------------------------
     def on_place_confirmed(self, msg: PlaceConfirmed) -> CycleOutcome:
+        """A confirmed place; ``ValueError`` (nothing changed) for coordinates that are not finite."""
+        if not (math.isfinite(msg.x_m) and math.isfinite(msg.y_m)):
+            raise ValueError(f"place {msg.place_id} at ({msg.x_m}, {msg.y_m})")
         tx = Transaction()
         if self.relaxer.graph.has_place(msg.place_id) or msg.place_id in self.deleted:
             return CycleOutcome(None, tx)
@@ -154,10 +157,16 @@ class OnlineMap:
         return self._cycle(msg.stamp, tx)
 
     def on_link_measured(self, msg: LinkMeasured) -> CycleOutcome:
+        """A measured link; ``ValueError`` (nothing changed) for a measurement no map can hold."""
         tx = Transaction()
         g = self.relaxer.graph
         if msg.from_id == msg.to_id:
             raise ValueError(f"link from place {msg.from_id} to itself")
+        if not (math.isfinite(msg.d_m) and msg.d_m >= 0 and math.isfinite(msg.theta_rad) and msg.steps >= 1
+                and math.isfinite(msg.mean_step_m) and msg.mean_step_m > 0
+                and (msg.variance_m2 is None or (math.isfinite(msg.variance_m2) and msg.variance_m2 > 0))):
+            raise ValueError(f"link {msg.from_id}->{msg.to_id}: d {msg.d_m}, theta {msg.theta_rad}, steps {msg.steps}, "
+                             f"mean step {msg.mean_step_m}, variance {msg.variance_m2} are not a measurement")
         key = _pair(msg.from_id, msg.to_id)
         if msg.from_id in self.deleted or msg.to_id in self.deleted:
             return CycleOutcome(None, tx)

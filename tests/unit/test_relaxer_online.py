@@ -146,3 +146,21 @@ def test_anchor_finds_the_nearest_place_by_its_first_position():
     assert m.anchor(10.0, 10.0) is None
     m.on_place_deleted(1, 50.0)
     assert m.anchor(1.05, 0.0)[0] != 1
+
+
+@pytest.mark.parametrize("bad", [
+    {"d_m": float("nan")}, {"d_m": -1.0}, {"theta_rad": float("inf")}, {"steps": 0}, {"mean_step_m": 0.0},
+    {"variance_m2": -0.1}, {"variance_m2": float("nan")},
+])
+def test_impossible_measurements_are_refused_and_change_nothing(bad):
+    import msgspec
+
+    m = OnlineMap()
+    square(m)
+    before, version = m.coordinates(), m.version
+    msg = msgspec.structs.replace(_link(0, 2, 1.0, 1.0), **bad)
+    with pytest.raises(ValueError):
+        m.on_link_measured(msg)
+    with pytest.raises(ValueError):
+        m.on_place_confirmed(msgspec.structs.replace(_place(9, 1.0, 1.0), x_m=float("nan")))
+    assert m.coordinates() == before and m.version == version and (0, 2) not in m.links
