@@ -45,6 +45,7 @@ class PlaceRecognizerParams:
     link_fuse_gate_m: float = 1.0  # a later traversal further than this from the fused link is rejected
     max_hypotheses: int = 5  # hypotheses reported in the localization (most probable first)
     match_min_prior: float = 0.0  # places less probable than this before the scan are not matched
+    link_map_gate_m: float = 0.75  # a traversal further than this from the centres' displacement is rejected
 
 
 @dataclass(frozen=True)
@@ -207,6 +208,12 @@ class PlaceRecognizer:
     equivalent ``round(1 / sum(1 / T_k))`` (so the relaxer sees the fused, smaller covariance), its
     mean step the weighted mean of the mean steps, and ``traversals`` counts them. A traversal
     further than ``link_fuse_gate_m`` from the fused displacement is rejected as a misrecognition.
+
+    Map gate: a traversal whose displacement ``D`` differs from that of the two places' current
+    centres (the explorer's, or the relaxed ones) by more than ``link_map_gate_m`` is rejected as a
+    misrecognition before it is fused (counted in ``rejected_traversals``). The belief itself follows
+    those centres, so a recognition that contradicts them by metres is a jump to a look-alike place;
+    a missing link costs the relaxer far less than a wrong one.
     """
 
     def __init__(self, params: PlaceRecognizerParams | None = None) -> None:
@@ -453,8 +460,19 @@ class PlaceRecognizer:
         mean_step = path / gap_steps if gap_steps >= 1 and path > 0.0 else max(d, 1e-6)
         # the marks are inside the places: count the steps of the whole centre-to-centre distance
         steps = max(1, gap_steps, int(round(d / mean_step)))
+        if not self._agrees_with_map(dep.place_id, pend.to_id, disp):
+            self.rejected_traversals += 1
+            return []
         est = self._fuse(dep.place_id, pend.to_id, disp, steps, mean_step)
         return [] if est is None else [est]
+
+    def _agrees_with_map(self, a: int, b: int, disp: np.ndarray) -> bool:
+        """Whether a traversal ``a -> b`` lies within ``link_map_gate_m`` of the places' centres."""
+        try:
+            ca, cb = self.belief.centres[self.belief.index(a)], self.belief.centres[self.belief.index(b)]
+        except KeyError:
+            return True
+        return bool(np.hypot(*(np.asarray(disp) - (cb - ca))) <= self.params.link_map_gate_m)
 
     def _fuse(self, a: int, b: int, disp: np.ndarray, steps: int, mean_step: float) -> LinkEstimate | None:
         key = frozenset((a, b))

@@ -137,3 +137,21 @@ def test_move_places_keeps_offsets():
     assert after.place_id == before.place_id == 0
     assert (after.offset_x_m, after.offset_y_m) == (before.offset_x_m, before.offset_y_m)
     np.testing.assert_allclose(d.rec.belief.centres[0], [10.0, -3.0])
+
+
+def test_a_traversal_that_contradicts_the_map_is_not_a_link():
+    """Place 1 is confirmed where the map (explorer) says, 1.2 m off the robot's dead-reckoned
+    position: the traversal 0 -> 1 disagrees with the centres by more than ``link_map_gate_m``."""
+    for map_x, expect_link in ((2.6, True), (3.7, False)):
+        rec = PlaceRecognizer(PlaceRecognizerParams(link_map_gate_m=0.75))
+        d = _Drive(rec)
+        dr = d.dr(1.5, 1.5)
+        rec.step(dr, scan_at(1.5, 1.5, 0.0, WALLS)[0])
+        rec.add_place(0, 1.5, 1.5, dr)
+        for k in range(1, 11):
+            dr = d.dr(1.5 + 0.1 * k, 1.5)
+            rec.step(dr, scan_at(1.5 + 0.1 * k, 1.5, 0.0, WALLS)[0])
+        out = rec.add_place(1, map_x, 1.5, dr)
+        assert bool(out.links) is expect_link
+        assert (rec.link(0, 1) is not None) is expect_link
+        assert rec.rejected_traversals == (0 if expect_link else 1)
