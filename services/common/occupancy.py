@@ -121,3 +121,30 @@ class GlobalGrid:
         out = np.round(p * 100.0).astype(np.uint8)
         out[self.logodds == 0.0] = 255
         return out
+
+
+def compose(parts: list[tuple[GlobalGrid, float, float]], cell_m: float) -> GlobalGrid:
+    """One grid from several, each shifted by ``(dx, dy)`` metres (rounded to whole cells) and added.
+
+    Log-odds add, so this equals integrating every part's scans at the shifted positions, up to half
+    a cell of rounding. Parts must share ``cell_m``.
+    """
+    out = GlobalGrid(cell_m, parts[0][0].params if parts else SonarConeParams())
+    placed = []
+    for g, dx, dy in parts:
+        if g.logodds.size == 0:
+            continue
+        if g.cell_m != cell_m:
+            raise ValueError(f"grid of {g.cell_m} m cells composed at {cell_m} m")
+        origin = g.origin + np.round(np.array([dx, dy]) / cell_m) * cell_m
+        placed.append((g, origin))
+    if not placed:
+        return out
+    lo = np.min([o for _, o in placed], axis=0)
+    hi = np.max([o + np.array(g.logodds.shape[::-1]) * cell_m for g, o in placed], axis=0)
+    cols, rows = np.round((hi - lo) / cell_m).astype(int)
+    out.origin, out.logodds = lo, np.zeros((rows, cols))
+    for g, origin in placed:
+        c0, r0 = np.round((origin - lo) / cell_m).astype(int)
+        out.logodds[r0:r0 + g.logodds.shape[0], c0:c0 + g.logodds.shape[1]] += g.logodds
+    return out

@@ -44,7 +44,7 @@ def run(session: zenoh.Session, params: RelaxerParams, *, robot: str = topics.DE
     store = MapStore(Path(params.store_path))
     stored = store.load()
     core = OnlineMap(params.online, stored, rng=np.random.default_rng(params.seed))
-    core.scans = store.scans()
+    core.load_scans(store.scans())
     if stored.places:
         log.info("resumed %d places, %d links, version %d from %s", len(stored.places), len(stored.links),
                  stored.version, params.store_path)

@@ -36,7 +36,7 @@ from messages.types import (
     PlacePosition,
     PlaceReply,
 )
-from services.common.occupancy import GlobalGrid, SonarConeParams
+from services.common.occupancy import GlobalGrid, SonarConeParams, compose
 from services.relaxer.compass import CompassNoise, CompassParams, CompassRelaxer, estimate_noise_reml
 from services.relaxer.graph import MapGraph as Graph
 from services.relaxer.store import StoredMap, StoredScan, Transaction
@@ -112,6 +112,11 @@ class OnlineMap:
         self.deleted: set[int] = set()  # places deleted for good: a replayed confirmation stays ignored
         self.initial: dict[int, tuple[float, float]] = {}  # place -> position when confirmed (dead reckoning)
         self.scans: list[StoredScan] = []
+        # the grids at the default resolution, kept up to date scan by scan: one per place in
+        # place-centred coordinates (shifted to the relaxed coordinates when asked) and one in the
+        # dead-reckoning frame; other resolutions are built from the scans when asked
+        self._place_grids: dict[int, GlobalGrid] = {}
+        self._dr_grid = GlobalGrid(params.grid_resolution_m, params.cone)
         self.updates = 0
         self.iterations = 0
         self.methods: dict[str, int] = {}
@@ -242,8 +247,23 @@ class OnlineMap:
         return int(ids[k]), float(x_m - xy[k, 0]), float(y_m - xy[k, 1])
 
     def add_scan(self, scan: StoredScan) -> Transaction:
-        self.scans.append(scan)
+        """Keep a scan for the grids; the transaction that stores it."""
+        self._integrate(scan)
         return Transaction(scans=[scan])
+
+    def load_scans(self, scans: list[StoredScan]) -> None:
+        """Scans from the store (at a restart)."""
+        for scan in scans:
+            self._integrate(scan)
+
+    def _integrate(self, s: StoredScan) -> None:
+        self.scans.append(s)
+        kw = {"beam_width_rad": s.beam_width, "max_range_m": s.max_range}
+        place = self._place_grids.get(s.place_id)
+        if place is None:
+            place = self._place_grids[s.place_id] = GlobalGrid(self.params.grid_resolution_m, self.params.cone)
+        place.integrate(s.off_x, s.off_y, s.heading, s.angles, s.ranges, **kw)
+        self._dr_grid.integrate(s.dr_x, s.dr_y, s.heading, s.angles, s.ranges, **kw)
 
     def cycle(self, stamp: float, tx: Transaction | None = None) -> CycleOutcome:
         """One relaxation cycle (also run after every event); its update and what to store."""
@@ -363,6 +383,26 @@ class OnlineMap:
             When the grid would have more than ``max_cells`` cells at this resolution.
         """
         coords = self.coordinates()
+        default = resolution_m == self.params.grid_resolution_m
+        if default and frame == "relaxed":
+            grid = compose([(g, *coords[pid]) for pid, g in self._place_grids.items() if pid in coords],
+                           resolution_m)
+        elif default:
+            grid = self._dr_grid
+        else:
+            grid = self._build_grid(resolution_m, frame, coords, max_cells)
+        if grid.logodds.size > max_cells:
+            raise ValueError(f"a grid at {resolution_m:g} m would have {grid.logodds.size} cells "
+                             f"(at most {max_cells}); ask a coarser resolution")
+        cells = grid.occupancy_percent()
+        return OccupancyGrid(resolution_m=resolution_m, origin_x_m=float(grid.origin[0]),
+                             origin_y_m=float(grid.origin[1]), width=int(cells.shape[1] if cells.size else 0),
+                             height=int(cells.shape[0] if cells.size else 0), cells=cells.tobytes(),
+                             version=self.version)
+
+    def _build_grid(self, resolution_m: float, frame: str, coords: dict[int, tuple[float, float]],
+                    max_cells: int) -> GlobalGrid:
+        """A grid at another resolution, from every scan (checked for size before it is built)."""
         placed = []
         for s in self.scans:
             if frame == "relaxed":
@@ -382,11 +422,7 @@ class OnlineMap:
         grid = GlobalGrid(resolution_m, self.params.cone)
         for x, y, s in placed:
             grid.integrate(x, y, s.heading, s.angles, s.ranges, beam_width_rad=s.beam_width, max_range_m=s.max_range)
-        cells = grid.occupancy_percent()
-        return OccupancyGrid(resolution_m=resolution_m, origin_x_m=float(grid.origin[0]),
-                             origin_y_m=float(grid.origin[1]), width=int(cells.shape[1] if cells.size else 0),
-                             height=int(cells.shape[0] if cells.size else 0), cells=cells.tobytes(),
-                             version=self.version)
+        return grid
 
     def stats(self) -> MapStats:
         ms = np.array(self.cycle_ms) if self.cycle_ms else np.zeros(1)

@@ -45,3 +45,31 @@ def test_global_grid_sees_a_wall_from_two_poses_and_grows():
         assert occ[_cell_of(grid, x, 1.0)] < 50
     assert occ[_cell_of(grid, 2.0, 2.7)] == 255  # beyond the free range of the diagonal beams
     assert grid.origin[0] <= -3.0 and grid.origin[0] + grid.logodds.shape[1] * CELL >= 7.0
+
+
+def test_composed_grids_equal_scans_integrated_at_the_shifted_positions():
+    from services.common.occupancy import compose
+
+    angles = np.deg2rad(np.arange(16) * 22.5)
+    rng = np.random.default_rng(3)
+    whole = GlobalGrid(CELL)
+    parts = []
+    for shift in [(0.0, 0.0), (3.0, 0.45), (-1.5, 2.1)]:  # whole cells: 20, 3, -10, 14
+        part = GlobalGrid(CELL)
+        for _ in range(3):
+            off = rng.uniform(-0.5, 0.5, 2)
+            ranges = rng.uniform(0.5, 6.5, 16)
+            part.integrate(*off, 0.3, angles, ranges, beam_width_rad=0.44, max_range_m=6.5)
+            whole.integrate(off[0] + shift[0], off[1] + shift[1], 0.3, angles, ranges, beam_width_rad=0.44,
+                            max_range_m=6.5)
+        parts.append((part, *shift))
+    got = compose(parts, CELL)
+
+    def cells(g):  # {(row, col) in world cell indices: log-odds} of the non-zero cells
+        r0, c0 = np.round(g.origin[::-1] / CELL).astype(int)
+        rows, cols = np.nonzero(g.logodds)
+        return {(r + r0, c + c0): g.logodds[r, c] for r, c in zip(rows, cols)}
+
+    a, b = cells(got), cells(whole)
+    assert len(a) > 500 and set(a) == set(b)
+    assert all(np.isclose(a[k], b[k]) for k in a)
