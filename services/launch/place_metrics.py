@@ -1,4 +1,5 @@
-"""Measures of an in-process run against ground truth: recognition, offsets, link errors, coverage (pure)."""
+"""Measures of an in-process run against ground truth: recognition, offsets, link errors, map errors,
+coverage (pure)."""
 
 from __future__ import annotations
 
@@ -152,6 +153,34 @@ def link_errors(rec: RunRecord, noise: tuple[float, float, float] | None = None)
     }
 
 
+def _aligned_rms(est: np.ndarray, true: np.ndarray) -> float:
+    """RMS distance between ``est`` and ``true`` (``(N, 2)``) after the best rigid 2-D alignment."""
+    me, mt = est.mean(axis=0), true.mean(axis=0)
+    u, _, vt = np.linalg.svd((est - me).T @ (true - mt))
+    rot = (u @ vt).T
+    if np.linalg.det(rot) < 0:
+        vt[-1] *= -1
+        rot = (u @ vt).T
+    res = (est - me) @ rot.T - (true - mt)
+    return float(np.sqrt((res**2).sum(axis=1).mean()))
+
+
+def map_errors(rec: RunRecord) -> dict:
+    """Error of the place coordinates against the places' true centres after the best rigid
+    alignment (RMS): the explorer's coordinates at confirmation (dead reckoning corrected by the
+    recognitions) and, when the relaxer ran, the final relaxed coordinates."""
+    ids = sorted(rec.places)
+    if len(ids) < 3:
+        return {}
+    true = np.array([rec.places[i].true_xy for i in ids])
+    out = {"map_error_explorer_rms_m": _aligned_rms(np.array([rec.places[i].map_xy for i in ids]), true)}
+    relaxed = [i for i in ids if i in rec.relaxed]
+    if len(relaxed) >= 3:
+        out["map_error_relaxed_rms_m"] = _aligned_rms(np.array([rec.relaxed[i] for i in relaxed]),
+                                                      np.array([rec.places[i].true_xy for i in relaxed]))
+    return out
+
+
 def coverage(rec: RunRecord, world: World, params: MetricParams = MetricParams()) -> dict:
     """Fraction of the reachable free space of the ground truth within ``coverage_radius_m`` of the
     true trajectory, and the unvisited free regions of at least ``min_gap_m2``."""
@@ -191,6 +220,7 @@ def measure(rec: RunRecord, world: World, params: MetricParams = MetricParams())
         relaxer = link_errors(rec, rec.noise)
         out["nees_mean_relaxer_noise"] = relaxer.get("nees_mean", float("nan"))
         out["nees_within_95_relaxer_noise"] = relaxer.get("nees_within_95", float("nan"))
+    out.update(map_errors(rec))
     out.update(coverage(rec, world, params))
     out.update({f"time_{k}_s": v for k, v in rec.timings_s.items()})
     return out

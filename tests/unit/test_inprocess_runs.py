@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import pytest
 
-from services.launch.inprocess import InProcessParams, InProcessRun
-from services.launch.place_metrics import CHI2_2DOF_95, measure
+import numpy as np
+
+from services.launch.inprocess import InProcessParams, InProcessRun, PlaceRecord, RunRecord
+from services.launch.place_metrics import CHI2_2DOF_95, map_errors, measure
 from sim.world import load_world
 
 
@@ -28,6 +30,20 @@ def test_a_run_is_a_function_of_the_seed():
     assert a.places and a.places == b.places and a.links == b.links and a.scans == b.scans
     assert a.trajectory == b.trajectory and a.relaxed == b.relaxed
     assert a.trajectory != c.trajectory
+
+
+def test_map_errors_after_rigid_alignment():
+    rng = np.random.default_rng(1)
+    true = rng.uniform(0, 10, size=(12, 2))
+    c, s = np.cos(0.3), np.sin(0.3)
+    moved = true @ np.array([[c, s], [-s, c]]) + [4.0, -2.0]  # the same map, rotated and shifted
+    noisy = moved + rng.normal(scale=0.1, size=moved.shape)
+    rec = RunRecord(world="w", seed=0, dt_s=0.1)
+    rec.places = {i: PlaceRecord(i, 0, tuple(true[i]), tuple(moved[i])) for i in range(12)}
+    rec.relaxed = {i: tuple(noisy[i]) for i in range(12)}
+    m = map_errors(rec)
+    assert m["map_error_explorer_rms_m"] == pytest.approx(0.0, abs=1e-9)
+    assert 0.05 < m["map_error_relaxed_rms_m"] < 0.15
 
 
 @pytest.fixture(scope="module")
