@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +11,8 @@ from PIL import Image
 
 from messages.types import MapGraph, MapStats, OccupancyGrid
 from services.common.files import atomic_write
+
+log = logging.getLogger(__name__)
 
 
 def grid_image(grid: OccupancyGrid) -> np.ndarray:
@@ -112,7 +115,10 @@ def write_outputs(session, robot: str, out: Path, monitor, *, world: str, seed: 
 
     graph = query(session, topics.map_graph(robot), type_=MapGraph, timeout_s=30)
     stats = query(session, topics.map_stats(robot), type_=MapStats, timeout_s=30)
-    write_map_files(graph, out / "map.json", out / "map.g2o")
+    if graph.places:
+        write_map_files(graph, out / "map.json", out / "map.g2o")
+    else:  # a map file without a place is not a map: no reader of map.json or g2o takes one
+        log.warning("no place was confirmed: map.json and map.g2o are not written")
     for frame, png, yaml in (("relaxed", "grid.png", "grid.yaml"), ("dead_reckoning", "grid_dead_reckoning.png", None)):
         grid = query(session, topics.map_grid(robot), {"resolution": grid_resolution_m, "frame": frame},
                      type_=OccupancyGrid, timeout_s=120)

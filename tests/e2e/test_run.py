@@ -6,6 +6,7 @@ import json
 import os
 import shutil
 import signal
+import sqlite3
 import subprocess
 import sys
 import time
@@ -64,6 +65,17 @@ def test_run_writes_every_output(tmp_path):
         assert "Traceback" not in log.read_text(), log.read_text()[-2000:]
 
 
+def _stored_places(store: Path) -> int:
+    """Places the relaxer has stored so far (read-only; 0 while the store does not exist yet)."""
+    if not store.exists():
+        return 0
+    try:
+        with sqlite3.connect(f"file:{store}?mode=ro", uri=True, timeout=1) as db:
+            return db.execute("SELECT count(*) FROM places").fetchone()[0]
+    except sqlite3.OperationalError:  # the schema is not written yet
+        return 0
+
+
 def test_ctrl_c_stops_cleanly_and_writes_outputs(tmp_path):
     out = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", "--port", "0", "--headless", "--out",
@@ -71,9 +83,8 @@ def test_ctrl_c_stops_cleanly_and_writes_outputs(tmp_path):
                             text=True, start_new_session=True)
     try:
         deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and not (out / "map.sqlite").exists():
-            time.sleep(0.2)
-        time.sleep(6)
+        while time.monotonic() < deadline and _stored_places(out / "map.sqlite") < 2:
+            time.sleep(0.5)
         os.killpg(proc.pid, signal.SIGINT)
         _, err = proc.communicate(timeout=120)
     finally:
