@@ -55,7 +55,8 @@ class CompassParams(msgspec.Struct, frozen=True):
     exact_cost_sweeps: float = 75.0  # cost of one exact solve in sweeps, at 1000 places (measured)
     exact_cost_growth: float = 0.15  # that cost grows as (places / 1000) ** this (measured)
     max_exact_noise_rounds: int = 50  # exact solves alternated with noise re-estimation, at most
-    noise_refresh_rel: float = 1e-3  # adopt a new noise estimate once it differs by more than this (relative)
+    noise_refresh_rel: float = 1e-3  # adopt a new noise estimate once it differs by more than this (relative);
+    # the sweep is rebuilt when the noise's shape (up to scale) moved by more than this
     class_chunk_places: int = 512  # places per sweep class: a change recompiles only its class (measured)
 
 
@@ -106,12 +107,18 @@ def link_information(graph: MapGraph, noise: CompassNoise) -> np.ndarray:
     return graph.basis @ information_coefficients(noise)
 
 
-def _residual_sums(graph: MapGraph, xy: np.ndarray) -> np.ndarray:
-    """``(sum p~^2, sum p~ q~, sum q~^2, sum |e|^2 / v)`` with ``p~ = e.u/sqrt(T)``, ``q~ = e.u_perp/(sqrt(T) delta)``."""
-    e = xy[graph.dst] - xy[graph.src] - graph.disp
+def _residual_sums(graph: MapGraph, xy: np.ndarray, *, circular: bool = True) -> np.ndarray:
+    """``(sum p~^2, sum p~ q~, sum q~^2, sum |e|^2 / v)`` with ``p~ = e.u/sqrt(T)``, ``q~ = e.u_perp/(sqrt(T) delta)``.
+
+    ``circular=False`` says no link has a variance of its own (the last sum is 0 then).
+    """
+    e = np.take(xy, graph.dst, axis=0)  # np.take gathers rows about twice as fast as xy[index]
+    e -= np.take(xy, graph.src, axis=0)
+    e -= graph.disp
     p = np.einsum("ij,ij->i", e, graph.u_scaled)
     q = np.einsum("ij,ij->i", e, graph.v_scaled)
-    return np.array([p @ p, p @ q, q @ q, graph.inv_var @ np.einsum("ij,ij->i", e, e)])
+    c = graph.inv_var @ np.einsum("ij,ij->i", e, e) if circular else 0.0
+    return np.array([p @ p, p @ q, q @ q, c])
 
 
 def _energy_from_sums(sums: np.ndarray, coef: np.ndarray) -> float:
@@ -410,6 +417,14 @@ def _noise_change(a: CompassNoise, b: CompassNoise) -> float:
                abs(a.s_da_m_rad - b.s_da_m_rad) / scale)
 
 
+def _shape_change(a: np.ndarray, b: np.ndarray, *, scale_matters: bool) -> float:
+    """Largest difference of two information-coefficient vectors ``(a, b, c, 1)``, each divided by
+    its ``a + c`` (relative difference of the last entry as well when ``scale_matters``)."""
+    sa, sb = a[0] + a[2], b[0] + b[2]
+    change = float(np.abs(a[:3] / sa - b[:3] / sb).max())
+    return max(change, abs(sb / sa - 1.0)) if scale_matters else change
+
+
 # ------------------------------------------------------------------------------- colour classes
 class _ColourClass:
     """Places of one colour (no two linked) and the half-links that point at them.
@@ -535,6 +550,7 @@ class CompassRelaxer:
             self._pinned_id = int(graph.ids[0])
         self.noise = noise
         self._coef = information_coefficients(noise)
+        self._sweep_coef = self._coef  # the coefficients the compiled sweep arrays were built with
         self._numeric_dirty = True
         self._n_circular = int(np.count_nonzero(graph.circular))
         self._parts_dirty = True
@@ -569,9 +585,23 @@ class CompassRelaxer:
         self._xy[: self.graph.n_places] = xy
 
     def set_noise(self, noise: CompassNoise) -> None:
-        self._coef = information_coefficients(noise)
+        self._adopt_noise(noise, tolerance=1e-12)  # a shape differing only by rounding keeps the sweep
+
+    def _adopt_noise(self, noise: CompassNoise, *, tolerance: float) -> None:
+        """Take ``noise`` for the energy and the estimates; rebuild the sweep only if its shape moved.
+
+        Notes
+        -----
+        The block update of Eq. 9 is unchanged when every link information is multiplied by one
+        constant, so the sweep depends on the noise only up to scale while no link has a circular
+        variance of its own. The sweep arrays are rebuilt when that shape differs from the one they
+        were built with by more than ``tolerance`` (any change, with circular links, past scale too).
+        """
         self.noise = noise
-        self._numeric_dirty = True
+        self._coef = information_coefficients(noise)
+        if _shape_change(self._sweep_coef, self._coef, scale_matters=self._n_circular > 0) > tolerance:
+            self._sweep_coef = self._coef
+            self._numeric_dirty = True
 
     def nbytes(self) -> int:
         """Bytes of numpy arrays held (graph, coordinates, sweep arrays; capacity included)."""
@@ -748,6 +778,9 @@ class CompassRelaxer:
         self._hlpos[s] = -1
         if variance_m2 is not None:
             self._n_circular += 1
+            if self._n_circular == 1 and self._sweep_coef is not self._coef:  # scale matters from now on
+                self._sweep_coef = self._coef
+                self._numeric_dirty = True
         i, j = int(g._src[s]), int(g._dst[s])
         pin = self.pinned_index
         for end, tgt, nb in ((0, i, j), (1, j, i)):
@@ -873,7 +906,7 @@ class CompassRelaxer:
         basis, disp = g._basis[: g.n_links], g._disp[: g.n_links]
         for cls in self._classes:
             if cls.n and (self._numeric_dirty or cls._numeric != cls.version):
-                cls.compile(basis, disp, self._coef)
+                cls.compile(basis, disp, self._sweep_coef)
         self._numeric_dirty = False
 
     def sweep(self, *, track_step: bool = True) -> float:
@@ -901,7 +934,7 @@ class CompassRelaxer:
         return step
 
     def _sums(self) -> np.ndarray:
-        return _residual_sums(self.graph, self._xy[: self.graph.n_places])
+        return _residual_sums(self.graph, self._xy[: self.graph.n_places], circular=self._n_circular > 0)
 
     def energy(self) -> float:
         """Eq. 7 at the current coordinates and noise."""
@@ -956,7 +989,7 @@ class CompassRelaxer:
         if self.params.estimate_noise:
             new = self._reestimate(sums)
             if _noise_change(self.noise, new) > self.params.noise_refresh_rel:
-                self.set_noise(new)
+                self._adopt_noise(new, tolerance=self.params.noise_refresh_rel)
         self.cycles += 1
         return CycleReport(energy=e, step_m=step, exact=exact, noise=self.noise)
 

@@ -373,3 +373,27 @@ def test_graph_grows_and_shrinks_consistently():
            for a, b, d in zip(g.src, g.dst, g.d_m)}
     assert got == model_links
     assert sum(g.degree(i) for i in range(g.n_places)) == 2 * g.n_links
+
+
+@pytest.mark.parametrize("with_circular", [False, True])
+def test_new_noise_rebuilds_the_sweep_unless_only_its_scale_changed(with_circular):
+    """Eq. 9 is unchanged when every information is multiplied by one constant: after a noise change
+    the engine's sweeps equal those of an engine built afresh with the new noise, whether or not it
+    rebuilt its arrays."""
+    om = office_map(60, rng=np.random.default_rng(5))
+    g = om.graph
+    if with_circular:
+        g.remove_link(int(g.ids[g.src[3]]), int(g.ids[g.dst[3]]))
+        g.add_link(int(g.ids[0]), int(g.ids[5]), d_m=5.0, theta_rad=0.1, steps=50, mean_step_m=0.1,
+                   variance_m2=0.05)
+    noise = CompassNoise(4e-4, 9e-4, 1e-4)
+    for new in (CompassNoise(3 * 4e-4, 3 * 9e-4, 3 * 1e-4), CompassNoise(4e-4, 2e-3, -1e-4)):
+        r = CompassRelaxer(g.copy(), om.xy_dead_reckoning, noise=noise, params=FIXED)
+        r.sweep()
+        r.set_noise(new)
+        fresh = CompassRelaxer(g.copy(), r.xy, noise=new, params=FIXED)
+        for _ in range(5):
+            r.sweep()
+            fresh.sweep()
+        np.testing.assert_allclose(r.xy, fresh.xy, rtol=0, atol=1e-12)
+        assert r.energy() == pytest.approx(fresh.energy(), rel=1e-12)
