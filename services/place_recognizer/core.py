@@ -254,15 +254,7 @@ class PlaceRecognizer:
         self._remember_scan(placed, dr.path_length_m)
         if self._last_xy is None:
             self.belief = _belief.Belief.empty(xy) if self.belief.ids.size == 0 else self.belief
-            move = np.zeros(2)
-        else:
-            move = np.subtract(xy, self._last_xy)
-        self._last_xy = xy
-        self.belief = _belief.predict(
-            self.belief, move, transition_std_m=p.transition_std_m,
-            transition_var_per_m_m2=p.transition_var_per_m_m2, place_radius_m=p.place_radius_m,
-            uniform_transition=p.uniform_transition, unknown_offset_var_m2=p.unknown_offset_var_m2,
-        )
+        self._move_belief_to(xy)
         scores, offsets, variances = self.match(xy)
         self.belief = _belief.correct(self.belief, scores, offsets, variances,
                                       match_sharpness=p.match_sharpness, new_place_match=p.new_place_match)
@@ -295,6 +287,10 @@ class PlaceRecognizer:
         if self._last_xy is None:
             self._last_xy = xy
             self.belief = _belief.Belief.empty(xy)
+        # the belief describes the robot at the last scan: move it to the confirmation first, or the
+        # new place's zero offset would be dated at that scan and every later offset would be ahead
+        # by the distance travelled in between
+        self._move_belief_to(xy)
         self.belief = _belief.add_place(self.belief, place_id, (x_m, y_m), probability=p.confirmed_probability)
         self._first_visit = place_id
         links = self._arrive_or_leave(place_id, dr, settled_now=True)
@@ -384,6 +380,17 @@ class PlaceRecognizer:
         return scores, offsets, variances
 
     # --- internals ----------------------------------------------------------------------------
+
+    def _move_belief_to(self, xy: tuple[float, float]) -> None:
+        """Move the belief by the dead-reckoned displacement since the last pose it was moved to."""
+        p = self.params
+        move = np.zeros(2) if self._last_xy is None else np.subtract(xy, self._last_xy)
+        self._last_xy = xy
+        self.belief = _belief.predict(
+            self.belief, move, transition_std_m=p.transition_std_m,
+            transition_var_per_m_m2=p.transition_var_per_m_m2, place_radius_m=p.place_radius_m,
+            uniform_transition=p.uniform_transition, unknown_offset_var_m2=p.unknown_offset_var_m2,
+        )
 
     def _remember_scan(self, scan: PlacedScan, path_m: float) -> None:
         p = self.params

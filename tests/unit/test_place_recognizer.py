@@ -155,3 +155,24 @@ def test_a_traversal_that_contradicts_the_map_is_not_a_link():
         assert bool(out.links) is expect_link
         assert (rec.link(0, 1) is not None) is expect_link
         assert rec.rejected_traversals == (0 if expect_link else 1)
+
+
+def test_a_place_confirmed_between_scans_dates_its_zero_offset_at_the_confirmation():
+    """The explorer confirms places at any dead-reckoned pose, not only where a scan was taken: the
+    offsets that follow count the travel from the confirmation, and the links measure the true spacing."""
+    d = _Drive(PlaceRecognizer())
+    offsets = []
+    for k in range(26):  # east along the hall, a scan every 0.2 m, a place 0.15 m after every fifth scan
+        x = 1.5 + 0.2 * k
+        d.visit(x, 1.5, confirm_new=False)
+        if k % 5 == 0:
+            pid = len(d.places)
+            d.places[pid] = (x + 0.15, 1.5)
+            d.links += d.rec.add_place(pid, x + 0.15, 1.5, d.dr(x + 0.15, 1.5)).links
+        elif k % 5 == 1:
+            loc = d.rec.localization()
+            offsets.append((loc.place_id, loc.offset_x_m))
+    assert [pid for pid, _ in offsets] == list(range(5))
+    assert [off for _, off in offsets] == pytest.approx([0.05] * 5, abs=0.04)  # not the 0.2 m since the scan
+    assert [(lk.from_id, lk.to_id) for lk in d.links] == [(i, i + 1) for i in range(5)]
+    assert [lk.d_m for lk in d.links] == pytest.approx([1.0] * 5, abs=0.03)
