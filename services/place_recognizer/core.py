@@ -46,6 +46,8 @@ class PlaceRecognizerParams:
     max_hypotheses: int = 5  # hypotheses reported in the localization (most probable first)
     match_min_prior: float = 0.0  # places less probable than this before the scan are not matched
     link_map_gate_m: float = 0.75  # a traversal further than this from the centres' displacement is rejected
+    match_window_sd: float = 3.0  # a place is matched at shifts within this many standard deviations of
+    # its predicted offset (0: at every shift)
 
 
 @dataclass(frozen=True)
@@ -371,13 +373,36 @@ class PlaceRecognizer:
         sy = np.stack([self._signatures[int(self.belief.ids[r])].hist.y for r in rows])
         max_shift = int(round(p.max_shift_m / p.cell_m))
         mx, my = match_axis(obs.x, sx, max_shift), match_axis(obs.y, sy, max_shift)
-        scores[rows] = 0.5 * (mx.best_score + my.best_score)
-        offsets[rows] = np.stack([mx.best_shift, my.best_shift], axis=1) * p.cell_m
+        best = [self._plausible_best(m, rows, axis, max_shift) for axis, m in enumerate((mx, my))]
+        scores[rows] = 0.5 * (best[0][1] + best[1][1])
+        offsets[rows] = np.stack([best[0][0], best[1][0]], axis=1) * p.cell_m
         variances[rows] = np.stack([
-            match_error_variance(mx.best_score, mx.mean_score, k_m2=p.match_error_k_m2, min_spread=p.min_match_spread),
-            match_error_variance(my.best_score, my.mean_score, k_m2=p.match_error_k_m2, min_spread=p.min_match_spread),
+            match_error_variance(best[0][1], mx.mean_score, k_m2=p.match_error_k_m2, min_spread=p.min_match_spread),
+            match_error_variance(best[1][1], my.mean_score, k_m2=p.match_error_k_m2, min_spread=p.min_match_spread),
         ], axis=1)
         return scores, offsets, variances
+
+    def _plausible_best(self, m, rows: list[int], axis: int, max_shift: int) -> tuple[np.ndarray, np.ndarray]:
+        """Best shift and score of each matched place among the shifts its prior makes plausible.
+
+        A hypothesis "the robot is at place j" says where at ``j`` it is (the predicted offset and its
+        variance): a better score at a shift the robot cannot be at (another stretch of a corridor that
+        looks the same) is not evidence for ``j``. Shifts within ``match_window_sd`` standard deviations
+        (prior variance plus the rounding of whole cells) of the predicted offset count; the one
+        nearest the prediction always does.
+        """
+        p = self.params
+        shifts = np.arange(-max_shift, max_shift + 1)
+        if p.match_window_sd <= 0:
+            return m.best_shift, m.best_score
+        pred = self.belief.offsets[rows, axis] / p.cell_m  # cells
+        sd = np.sqrt(self.belief.offset_vars[rows, axis] + p.cell_m**2 / 12.0) / p.cell_m
+        dist = np.abs(shifts[None, :] - pred[:, None])
+        allowed = (dist <= p.match_window_sd * sd[:, None]) | (dist == dist.min(axis=1, keepdims=True))
+        masked = np.where(allowed, m.scores, -np.inf)
+        order = np.argsort(np.abs(shifts), kind="stable")  # ties to the smallest |shift|, as match_axis
+        idx = order[np.argmax(masked[:, order], axis=1)]
+        return shifts[idx], masked[np.arange(len(rows)), idx]
 
     # --- internals ----------------------------------------------------------------------------
 
