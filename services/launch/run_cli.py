@@ -5,12 +5,19 @@ from __future__ import annotations
 import argparse
 
 DEFAULT_GRAPH = "graph.json"
+DEFAULT_WORLD = "orebro-office"
+DEFAULT_OUT = "relaxmap-out"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--world", default="orebro-office", help="built-in world name or a world file")
-    parser.add_argument("--seed", type=int, default=0, help="seed of every random generator of the run")
-    parser.add_argument("--out", default="relaxmap-out", help="output directory")
+    parser.add_argument("--world", default=None,
+                        help=f"built-in world name or a world file (default {DEFAULT_WORLD}; "
+                             "with --resume: the saved run's)")
+    parser.add_argument("--seed", type=int, default=None,
+                        help="seed of every random generator of the run (default 0; with --resume: the saved run's)")
+    parser.add_argument("--out", default=None, help=f"output directory (default {DEFAULT_OUT})")
+    parser.add_argument("--resume", metavar="DIR", default=None,
+                        help="continue the run saved in DIR (its map, robot, world and seed); outputs go to DIR")
     parser.add_argument("--viewer", action="store_true", help="spawn the Rerun viewer as well")
     parser.add_argument("--headless", action="store_true", help="no progress bar (log lines instead)")
     parser.add_argument("--max-sim-time", type=float, default=3600.0, metavar="S",
