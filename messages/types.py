@@ -270,6 +270,7 @@ class MapGraph(msgspec.Struct, frozen=True, kw_only=True):
     energy: float
     noise: NoiseParams
     pinned: int  # id of the place held fixed (gauge); -1 for an empty map
+    deleted: list[int] = []  # ids of the places deleted for good (an id is never used again)
 
 
 class PlaceReply(msgspec.Struct, frozen=True, kw_only=True):

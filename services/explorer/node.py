@@ -128,7 +128,7 @@ class ExplorerShell:
             {pid: (s.heading_rad, sonar_scan(s)) for pid, s in nearest.items()}, at_place=last.place_id,
             robot_xy=(cx + last.offset_x_m, cy + last.offset_y_m),
             pose=Pose2(x_m=last.dr_x_m, y_m=last.dr_y_m, heading_rad=last.heading_rad), scan=sonar_scan(last),
-            next_place_id=self.params.first_place_id)
+            next_place_id=max(self.params.first_place_id, max(saved.graph.deleted, default=-1) + 1))
         for ev in events:
             msg_type, name = _EVENT_TYPES[type(ev)]
             self._publish(name, msg_type(stamp=last.stamp, seq=self._next_seq(name), **asdict(ev)))

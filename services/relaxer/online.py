@@ -337,7 +337,7 @@ class OnlineMap:
         return MapGraph(version=self.version,
                         places=[MapPlace(place_id=i, x_m=x, y_m=y) for i, (x, y) in self.coordinates().items()],
                         links=list(self.links.values()), energy=self.energy,
-                        noise=_noise_msg(self.relaxer.noise), pinned=int(pinned))
+                        noise=_noise_msg(self.relaxer.noise), pinned=int(pinned), deleted=sorted(self.deleted))
 
     def place(self, place_id: int) -> PlaceReply:
         g = self.relaxer.graph

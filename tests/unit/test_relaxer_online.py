@@ -70,6 +70,8 @@ def test_delete_place_and_link():
     assert out.tx.deleted_places == [2]
     assert set(m.coordinates()) == {0, 1, 3}
     assert set(m.links) == {(0, 1)}
+    m.on_place_deleted(9, 32.0)  # a place the map never held (a predicted one): its id is taken too
+    assert m.graph().deleted == [2, 9]
 
 
 def test_queries():
