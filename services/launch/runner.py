@@ -173,7 +173,8 @@ def run(args: argparse.Namespace) -> int:
         reason = _watch(args, supervisor, monitor, stop, console)
         console.log(f"run ends: {reason}")
         # the robot stops first, so that the map, the robot's state and run.json tell of the same moment
-        supervisor.halt("sensor_sim")
+        if "sensor_sim" in supervisor.services:
+            supervisor.halt("sensor_sim")
         _settle(monitor)
         from services.launch.outputs import write_outputs
 
