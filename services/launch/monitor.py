@@ -206,7 +206,8 @@ class RunMonitor:
                 d = self._last_dr
                 i = self._truth_index(d.stamp)
                 robot = RobotState(
-                    stamp=d.stamp, tick=self._truth_tick[i], truth=self._truth_pose[i], dr_xy=(d.compass.x_m, d.compass.y_m),
+                    stamp=d.stamp, tick=self._truth_tick[i], truth=self._truth_pose[i],
+                    dr_xy=(d.compass.x_m, d.compass.y_m),
                     dr_raw=(d.raw.x_m, d.raw.y_m, d.raw.heading_rad), steps=d.steps, path_length_m=d.path_length_m)
             return MonitorState(
                 sim_time_s=self.sim_time_s, max_place_id=self.max_place_id,

@@ -105,6 +105,12 @@ def builtin_world_names() -> list[str]:
     return list(builtin_worlds())
 
 
+def _number(value: float) -> str:
+    """A number as an argument: fixed-point, so that argparse takes a negative one as a value (it would
+    take ``-1e-05`` for an option), to 1e-12."""
+    return f"{float(value):.12f}"
+
+
 def resume_values(plan: RunPlan) -> dict[str, list[str]]:
     """The ``{resume_<service>}`` arguments of the process graph: empty for a new run."""
     values: dict[str, list[str]] = {f"resume_{n}": [] for n in
@@ -114,10 +120,9 @@ def resume_values(plan: RunPlan) -> dict[str, list[str]]:
     m = plan.saved.monitor
     r = m.robot
     assert r is not None  # read_run_record refuses a run without it
-    values["resume_sensor_sim"] = ["--start-pose", *(repr(float(v)) for v in r.truth), "--start-tick", str(r.tick)]
-    values["resume_dead_reckoning"] = ["--start-xy", *(repr(float(v)) for v in r.dr_xy),
-                                       "--start-raw", *(repr(float(v)) for v in r.dr_raw),
-                                       "--start-steps", str(r.steps), "--start-path-m", repr(float(r.path_length_m))]
+    values["resume_sensor_sim"] = ["--start-pose", *map(_number, r.truth), "--start-tick", str(r.tick)]
+    values["resume_dead_reckoning"] = ["--start-xy", *map(_number, r.dr_xy), "--start-raw", *map(_number, r.dr_raw),
+                                       "--start-steps", str(r.steps), "--start-path-m", _number(r.path_length_m)]
     values["resume_place_recognizer"] = ["--resume"]
     values["resume_explorer"] = ["--resume", "--first-place-id", str(m.max_place_id + 1)]
     return values

@@ -122,8 +122,9 @@ def test_a_continued_run_goes_on_from_the_saved_pose_and_tick():
     assert frame2.tick == 150 and frame2.truth.stamp == pytest.approx(15.0) and frame2.compass.seq == 150
     assert (frame2.truth.pose.x_m, frame2.truth.pose.y_m) == (state.pose[0], state.pose[1])
     assert frame2.odometry is None and frame2.sonar is not None
-    filt2 = dr.continued_state((last.compass.x_m, last.compass.y_m), (last.raw.x_m, last.raw.y_m, last.raw.heading_rad),
-                               steps=last.steps, path_length_m=last.path_length_m)
+    raw = (last.raw.x_m, last.raw.y_m, last.raw.heading_rad)
+    filt2 = dr.continued_state((last.compass.x_m, last.compass.y_m), raw, steps=last.steps,
+                               path_length_m=last.path_length_m)
     filt2, first = dr.step(filt2, frame2.compass)
     assert (first[0].compass.x_m, first[0].compass.y_m) == (last.compass.x_m, last.compass.y_m)
     assert first[0].steps == 150 and first[0].path_length_m == last.path_length_m
