@@ -42,7 +42,14 @@ from services.explorer.core import (
     PlacePredictedEvent,
 )
 from services.runtime import Node, nonnegative_int, positive_float
-from services.runtime.saved_map import SavedMap, fetch_saved_map, sonar_scan
+from services.runtime.saved_map import (
+    RobotAt,
+    SavedMap,
+    add_resume_arguments,
+    fetch_saved_map,
+    robot_at_from_args,
+    sonar_scan,
+)
 
 SERVICE = "explorer"
 log = logging.getLogger("relaxmap.explorer")
@@ -69,6 +76,7 @@ class ExplorerNodeParams:
     resume: bool = False  # continue the map the relaxer holds (asked over the bus before the start)
     first_place_id: int = 0  # with resume: new places get ids from here on (above every id used before)
     resume_near_m: float = 1.0  # places are predicted from their scans taken this close to the centre
+    resume_at: RobotAt | None = None  # with resume: where the robot was (None: by the latest stored scan)
     core: ExplorerParams = field(default_factory=ExplorerParams)  # the explorer itself
 
 
@@ -121,20 +129,20 @@ class ExplorerShell:
             best = nearest.get(s.place_id)
             if best is None or math.hypot(s.offset_x_m, s.offset_y_m) < math.hypot(best.offset_x_m, best.offset_y_m):
                 nearest[s.place_id] = s
-        last = saved.latest
-        cx, cy = places[last.place_id]
+        last, at = saved.latest, saved.robot
+        cx, cy = places[at.place_id]
         events = self.core.restore(
             places, [(lk.from_id, lk.to_id, lk.traversals) for lk in saved.graph.links],
-            {pid: (s.heading_rad, sonar_scan(s)) for pid, s in nearest.items()}, at_place=last.place_id,
-            robot_xy=(cx + last.offset_x_m, cy + last.offset_y_m),
-            pose=Pose2(x_m=last.dr_x_m, y_m=last.dr_y_m, heading_rad=last.heading_rad), scan=sonar_scan(last),
+            {pid: (s.heading_rad, sonar_scan(s)) for pid, s in nearest.items()}, at_place=at.place_id,
+            robot_xy=(cx + at.offset_xy[0], cy + at.offset_xy[1]),
+            pose=Pose2(x_m=at.dr_xy[0], y_m=at.dr_xy[1], heading_rad=last.heading_rad), scan=sonar_scan(last),
             next_place_id=max(self.params.first_place_id, max(saved.graph.deleted, default=-1) + 1))
         for ev in events:
             msg_type, name = _EVENT_TYPES[type(ev)]
             self._publish(name, msg_type(stamp=last.stamp, seq=self._next_seq(name), **asdict(ev)))
             self.counts["events"] += 1
         log.info("%s: continuing %d places, %d links from place %d; %d places predicted", SERVICE, len(places),
-                 len(saved.graph.links), last.place_id, len(events))
+                 len(saved.graph.links), at.place_id, len(events))
 
     # -- inputs ---------------------------------------------------------------------------------
     def on_dr_pose(self, msg: DeadReckonedPose) -> None:
@@ -244,7 +252,7 @@ def run(session: zenoh.Session, params: ExplorerNodeParams = ExplorerNodeParams(
                 for name, type_ in _TYPES.items()}
         shell = ExplorerShell(params, lambda name, msg: pubs[name].put(msg))
         if params.resume:
-            shell.restore(fetch_saved_map(session, robot, near_m=params.resume_near_m))
+            shell.restore(fetch_saved_map(session, robot, near_m=params.resume_near_m, at=params.resume_at))
 
         def update_detail() -> None:
             node.detail.update(shell.counts)
@@ -294,8 +302,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-sim-time", type=positive_float, default=None, metavar="S",
                         help="stop after answering the tick that reaches this simulated time")
     parser.add_argument("--duration-s", type=positive_float, default=None, help="stop after this wall time")
-    parser.add_argument("--resume", action="store_true",
-                        help="continue the map the relaxer holds (its places, links and scans) before the start")
+    add_resume_arguments(parser)
     parser.add_argument("--first-place-id", type=nonnegative_int, default=0, metavar="N",
                         help="with --resume: new places get ids from N on (above every id used before)")
 
@@ -306,4 +313,5 @@ def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.E
                                     localization_timeout_s=args.localization_timeout_s,
                                     follow_map=not args.no_follow_map, max_sim_time_s=args.max_sim_time,
                                     duration_s=args.duration_s, resume=args.resume,
-                                    first_place_id=args.first_place_id), robot=args.robot, stop=stop)
+                                    first_place_id=args.first_place_id, resume_at=robot_at_from_args(args)),
+        robot=args.robot, stop=stop)

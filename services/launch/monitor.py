@@ -5,6 +5,7 @@ from __future__ import annotations
 import bisect
 import threading
 import time
+from collections import deque
 
 import msgspec
 import zenoh
@@ -17,12 +18,16 @@ from messages.types import (
     LinkDeleted,
     LinkInferred,
     LinkMeasured,
+    LocalizationBelief,
     MapUpdate,
     PlaceConfirmed,
     PlaceDeleted,
     PlacePredicted,
     TruthPose,
 )
+
+
+DR_HISTORY = 4096  # recent dead-reckoned positions kept, to pair the last localization with its own
 
 
 def _pair(a: int, b: int) -> tuple[int, int]:
@@ -39,6 +44,17 @@ class RobotState(msgspec.Struct, frozen=True, kw_only=True):
     dr_raw: tuple[float, float, float]  # raw odometry pose
     steps: int  # odometry steps integrated
     path_length_m: float  # distance integrated
+    fix: PlaceFixState | None = None  # the last localization at a place (None: none was heard)
+
+
+class PlaceFixState(msgspec.Struct, frozen=True, kw_only=True):
+    """The recognizer's last localization at a place, with the dead-reckoned position of its stamp: the
+    robot's map position is the place's centre plus the offset, moved on by dead reckoning since."""
+
+    stamp: float
+    place_id: int
+    offset_xy: tuple[float, float]  # robot minus place centre
+    dr_xy: tuple[float, float]  # compass dead-reckoned position at ``stamp``
 
 
 class SavedPlace(msgspec.Struct, frozen=True, kw_only=True):
@@ -82,6 +98,8 @@ class RunMonitor:
         self._truth_pose: list[tuple[float, float, float]] = []
         self._truth_tick: list[int] = []
         self._last_dr: DeadReckonedPose | None = None
+        self._dr_recent: deque[tuple[float, float, float]] = deque(maxlen=DR_HISTORY)  # stamp, x, y
+        self._last_fix: LocalizationBelief | None = None
         self.max_place_id = -1  # the highest place id heard of (predicted, confirmed or deleted)
         self._saved_truth: dict[int, tuple[float, float]] = {}  # places of earlier parts of the run
         self._saved_dr: dict[int, tuple[float, float]] = {}
@@ -98,6 +116,7 @@ class RunMonitor:
             topics.places_predicted(robot): (PlacePredicted, self._on_predicted),
             topics.places_confirmed(robot): (PlaceConfirmed, self._on_confirmed),
             topics.dr_pose(robot): (DeadReckonedPose, self._on_dr),
+            topics.localization(robot): (LocalizationBelief, self._on_localization),
             topics.places_deleted(robot): (PlaceDeleted, self._on_place_deleted),
             topics.links_measured(robot): (LinkMeasured, self._on_measured),
             topics.links_inferred(robot): (LinkInferred, self._on_inferred),
@@ -130,6 +149,22 @@ class RunMonitor:
     def _on_dr(self, msg: DeadReckonedPose) -> None:
         if self._last_dr is None or msg.stamp >= self._last_dr.stamp:
             self._last_dr = msg
+            self._dr_recent.append((msg.stamp, msg.compass.x_m, msg.compass.y_m))
+
+    def _on_localization(self, msg: LocalizationBelief) -> None:
+        if msg.place_id >= 0 and (self._last_fix is None or msg.stamp >= self._last_fix.stamp):
+            self._last_fix = msg
+
+    def _fix_state(self) -> PlaceFixState | None:
+        """The last localization at a place, with the dead-reckoned position of its stamp (if kept)."""
+        f = self._last_fix
+        if f is None or f.place_id in self.deleted_places:
+            return None
+        for stamp, x, y in reversed(self._dr_recent):
+            if abs(stamp - f.stamp) < 1e-6:
+                return PlaceFixState(stamp=f.stamp, place_id=f.place_id, offset_xy=(f.offset_x_m, f.offset_y_m),
+                                     dr_xy=(x, y))
+        return None
 
     def _on_predicted(self, msg: PlacePredicted) -> None:
         self.max_place_id = max(self.max_place_id, msg.place_id)
@@ -208,7 +243,8 @@ class RunMonitor:
                 robot = RobotState(
                     stamp=d.stamp, tick=self._truth_tick[i], truth=self._truth_pose[i],
                     dr_xy=(d.compass.x_m, d.compass.y_m),
-                    dr_raw=(d.raw.x_m, d.raw.y_m, d.raw.heading_rad), steps=d.steps, path_length_m=d.path_length_m)
+                    dr_raw=(d.raw.x_m, d.raw.y_m, d.raw.heading_rad), steps=d.steps, path_length_m=d.path_length_m,
+                    fix=self._fix_state())
             return MonitorState(
                 sim_time_s=self.sim_time_s, max_place_id=self.max_place_id,
                 places=[SavedPlace(place_id=pid, truth=truth[pid], dead_reckoning=dr[pid])

@@ -7,6 +7,8 @@ import argparse
 DEFAULT_GRAPH = "graph.json"
 DEFAULT_WORLD = "orebro-office"
 DEFAULT_OUT = "relaxmap-out"
+START_TIMEOUT_S = 60.0
+RESUME_START_TIMEOUT_S = 600.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -25,8 +27,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--graph", help="process graph file (default: deploy/graph.json)")
     parser.add_argument("--port", type=int, default=7447,
                         help="loopback port of the run's hub (0: any free port)")
-    parser.add_argument("--start-timeout-s", type=float, default=60.0,
-                        help="how long the services may take to come alive")
+    parser.add_argument("--start-timeout-s", type=float, default=None,
+                        help=f"how long the services may take to come alive (default {START_TIMEOUT_S:g} s; "
+                             f"{RESUME_START_TIMEOUT_S:g} s with --resume, as the relaxer first re-integrates "
+                             "every stored scan)")
 
 
 def main(args: argparse.Namespace) -> int:

@@ -25,6 +25,7 @@ from services.launch.resume import (
     recording_name,
     write_run_record,
 )
+from services.launch.run_cli import DEFAULT_OUT, DEFAULT_WORLD, RESUME_START_TIMEOUT_S, START_TIMEOUT_S
 from services.launch.supervisor import Supervisor
 from services.runtime import AliveWatcher, QueryFailed, deploy_file, loopback_config, shutdown_event
 from services.runtime.procs import free_port
@@ -69,8 +70,6 @@ class RunPlan:
 
 def plan_run(args: argparse.Namespace) -> RunPlan:
     """Check the command line against the saved run (with ``--resume``); ``RunError`` says what is wrong."""
-    from services.launch.run_cli import DEFAULT_OUT, DEFAULT_WORLD
-
     if args.resume is None:
         world = args.world or DEFAULT_WORLD
         out = Path(args.out or DEFAULT_OUT).resolve()
@@ -123,8 +122,12 @@ def resume_values(plan: RunPlan) -> dict[str, list[str]]:
     values["resume_sensor_sim"] = ["--start-pose", *map(_number, r.truth), "--start-tick", str(r.tick)]
     values["resume_dead_reckoning"] = ["--start-xy", *map(_number, r.dr_xy), "--start-raw", *map(_number, r.dr_raw),
                                        "--start-steps", str(r.steps), "--start-path-m", _number(r.path_length_m)]
-    values["resume_place_recognizer"] = ["--resume"]
-    values["resume_explorer"] = ["--resume", "--first-place-id", str(m.max_place_id + 1)]
+    at: list[str] = []
+    if r.fix is not None:  # where the recognizer last localised the robot (else the services ask the map)
+        at = ["--resume-place", str(r.fix.place_id), "--resume-offset", *map(_number, r.fix.offset_xy),
+              "--resume-dr", *map(_number, r.fix.dr_xy)]
+    values["resume_place_recognizer"] = ["--resume", *at]
+    values["resume_explorer"] = ["--resume", *at, "--first-place-id", str(m.max_place_id + 1)]
     return values
 
 
@@ -164,7 +167,10 @@ def run(args: argparse.Namespace) -> int:
     wall0 = time.monotonic()
     try:
         supervisor.start()
-        deadline = time.monotonic() + args.start_timeout_s
+        start_timeout_s = args.start_timeout_s
+        if start_timeout_s is None:
+            start_timeout_s = START_TIMEOUT_S if saved is None else RESUME_START_TIMEOUT_S
+        deadline = time.monotonic() + start_timeout_s
         while not watcher.wait_alive(graph.names(), 0.2):
             supervisor.poll()
             if supervisor.failure:
@@ -173,7 +179,7 @@ def run(args: argparse.Namespace) -> int:
             if stop.is_set():
                 raise RunError(f"stopped by signal before every service was alive (missing: {missing})")
             if time.monotonic() > deadline:
-                raise RunError(f"not alive after {args.start_timeout_s:g} s: {missing} (logs in {out / 'logs'})")
+                raise RunError(f"not alive after {start_timeout_s:g} s: {missing} (logs in {out / 'logs'})")
         console.log(f"all {len(graph.services)} services alive on {endpoint}")
         reason = _watch(args, supervisor, monitor, stop, console)
         console.log(f"run ends: {reason}")

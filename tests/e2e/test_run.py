@@ -187,6 +187,20 @@ def _map(out: Path) -> tuple[dict[int, tuple[float, float]], dict[tuple[int, int
     return places, {(min(lk["from"], lk["to"]), max(lk["from"], lk["to"])): lk for lk in m["links"]}
 
 
+def _rigid_fit(a: list, b: list):
+    """The rotation and translation taking points ``a`` closest to ``b`` (least squares), and the residuals."""
+    A, B = np.asarray(a, float), np.asarray(b, float)
+    ca, cb = A.mean(axis=0), B.mean(axis=0)
+    u, _, vt = np.linalg.svd((A - ca).T @ (B - cb))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    rot = vt.T @ np.diag([1.0, d]) @ u.T
+
+    def fit(p):
+        return tuple(rot @ (np.asarray(p, float) - ca) + cb)
+
+    return fit, [math.dist(fit(p), q) for p, q in zip(a, b, strict=True)]
+
+
 def test_resume_continues_the_saved_run(tmp_path):
     """Stop a run with Ctrl-C, continue it from its directory: no place or link of the first part is
     lost, its coordinates move little, new places get new ids and join the old ones, simulated time
@@ -214,6 +228,7 @@ def test_resume_continues_the_saved_run(tmp_path):
     assert saved["sim_time_s"] == pytest.approx(first["sim_time_s"]) and len(places1) == first["places"] >= 12
     assert saved["monitor"]["robot"]["tick"] == round(saved["monitor"]["robot"]["stamp"] * 10)
     assert saved["monitor"]["max_place_id"] >= max(places1)
+    assert saved["monitor"]["robot"]["fix"]["place_id"] in places1  # where the recognizer last had it
 
     # what contradicts the saved run is refused before anything starts, and the directory stays as it was
     for extra, why in ((["--seed", "3"], "contradicts the saved run's seed 2"),
@@ -253,6 +268,12 @@ def test_resume_continues_the_saved_run(tmp_path):
     assert second["wall_time_s"] > first["wall_time_s"]
     truth2 = {p["id"]: (p["x"], p["y"]) for p in json.loads((out / "truth.json").read_text())["places"]}
     assert all(truth2[p["id"]] == (p["x"], p["y"]) for p in json.loads(truth1)["places"])
+    # the robot went on from where it truly was: fitted on the first part's places, the map puts the
+    # second part's first places where they truly are, about as well as it puts the first part's
+    old_ids = sorted(places1)
+    fit, old_err = _rigid_fit([places2[i] for i in old_ids], [truth2[i] for i in old_ids])
+    new_err = [math.dist(fit(places2[i]), truth2[i]) for i in sorted(new)[:3]]
+    assert max(new_err) < max(old_err) + 0.75, (new_err, max(old_err))
     run2 = json.loads((out / "run.json").read_text())
     assert run2["parts"] == 2 and run2["recordings"] == ["recording.rrd", "recording-2.rrd"]
     assert run2["recording_id"] == saved["recording_id"]
