@@ -101,6 +101,10 @@ def map_stats(robot: str = DEFAULT_ROBOT) -> str:
     return _key(robot, "map", "stats")
 
 
+def map_scans(robot: str = DEFAULT_ROBOT) -> str:
+    return _key(robot, "map", "scans")
+
+
 # every service
 def alive(robot: str = DEFAULT_ROBOT, service: str = "*") -> str:
     """Liveliness token of a service (``*`` for all)."""
@@ -124,6 +128,6 @@ def all_topics(robot: str = DEFAULT_ROBOT) -> dict[str, str]:
         odometry, compass, sonar, truth_pose, dr_pose, localization, links_measured,
         places_predicted, places_confirmed, places_deleted, links_inferred, links_confidence,
         links_deleted, cmd_velocity, exploration_status, map_update, map_graph, map_path,
-        map_grid, map_stats,
+        map_grid, map_stats, map_scans,
     )
     return {fn.__name__: fn(robot) for fn in fns}

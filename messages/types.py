@@ -270,6 +270,7 @@ class MapGraph(msgspec.Struct, frozen=True, kw_only=True):
     energy: float
     noise: NoiseParams
     pinned: int  # id of the place held fixed (gauge); -1 for an empty map
+    deleted: list[int] = []  # ids of the places deleted for good (an id is never used again)
 
 
 class PlaceReply(msgspec.Struct, frozen=True, kw_only=True):
@@ -320,6 +321,29 @@ class MapStats(msgspec.Struct, frozen=True, kw_only=True):
     noise: NoiseParams
 
 
+class PlaceScan(msgspec.Struct, frozen=True, kw_only=True):
+    """A sonar scan the relaxer keeps for the grid: the place it was taken at and where the robot was."""
+
+    stamp: float  # simulated time of the scan
+    place_id: int  # the place the scan belongs to
+    offset_x_m: float  # robot minus place centre when the scan was taken, world frame
+    offset_y_m: float
+    dr_x_m: float  # the robot's compass dead-reckoned position then
+    dr_y_m: float
+    heading_rad: float  # compass heading then
+    angles_rad: list[float]  # bearing of each transducer relative to the heading
+    ranges_m: list[float]
+    beam_width_rad: float
+    max_range_m: float
+
+
+class ScanSet(msgspec.Struct, frozen=True, kw_only=True):
+    """Stored sonar scans, oldest first (reply of ``map/scans``)."""
+
+    version: int  # map version when the reply was made
+    scans: list[PlaceScan]
+
+
 class ErrorReply(msgspec.Struct, frozen=True, kw_only=True):
     """Payload of an error reply to a query: what was wrong."""
 
@@ -327,7 +351,7 @@ class ErrorReply(msgspec.Struct, frozen=True, kw_only=True):
     key: str
 
 
-ALL_REPLIES: tuple[type, ...] = (MapGraph, PlaceReply, PathReply, OccupancyGrid, MapStats, ErrorReply)
+ALL_REPLIES: tuple[type, ...] = (MapGraph, PlaceReply, PathReply, OccupancyGrid, MapStats, ScanSet, ErrorReply)
 
 ALL_MESSAGES: tuple[type[Message], ...] = (
     OdometryStep,

@@ -64,10 +64,33 @@ class DrState:
     pending: tuple[OdometryStep, ...] = ()  # odometry awaiting its compass reading, oldest first
     headings: tuple[tuple[int, float], ...] = ()  # recent (stamp in microseconds, compass heading)
     dropped: int = 0  # odometry steps that ended before the first compass reading
+    continued: bool = False  # the frame continues a saved run's (see ``continued_state``)
+    continued_raw: bool = False  # ... and so does the raw odometry pose
+    start_steps: int = 0  # steps when this run started (the start phase lasts until the next one)
 
     @property
     def gaps(self) -> int:
         return self.odometry.gaps + self.compass.gaps
+
+
+def continued_state(compass_xy: tuple[float, float], raw_pose: Pose | None = None, *, steps: int = 0,
+                    path_length_m: float = 0.0) -> DrState:
+    """The state of a run that continues a saved one: its last compass-based position, raw pose and
+    step record, so that poses, step counts and path lengths go on from where they were.
+
+    The compass heading is taken from the first reading, as at any start; without ``raw_pose`` the
+    raw odometry restarts at the compass-based position with that heading.
+
+    >>> s, poses = step(continued_state((2.0, 1.0), steps=40, path_length_m=3.5),
+    ...                 CompassReading(stamp=4.0, seq=40, heading_rad=0.5))
+    >>> p = poses[0]
+    >>> (p.compass.x_m, p.compass.y_m, p.compass.heading_rad, p.raw.x_m, p.steps, p.path_length_m)
+    (2.0, 1.0, 0.5, 2.0, 40, 3.5)
+    """
+    raw = (0.0, 0.0, 0.0) if raw_pose is None else (float(raw_pose[0]), float(raw_pose[1]), float(raw_pose[2]))
+    return DrState(compass_pose=(float(compass_xy[0]), float(compass_xy[1]), 0.0), raw_pose=raw, steps=steps,
+                   path_length_m=path_length_m, continued=True, continued_raw=raw_pose is not None,
+                   start_steps=steps)
 
 
 def _us(stamp: float) -> int:
@@ -85,7 +108,8 @@ def step(state: DrState, msg: OdometryStep | CompassReading,
     ``h_{k-1}`` and ``h_k``; the heading is the compass's own. Raw odometry integrates the wheels'
     rotation instead. An odometry step is paired with the compass reading of the same stamp; when
     that reading never comes, the heading is predicted as ``h_{k-1}`` plus the wheels' rotation.
-    The frame starts at the origin with the first compass heading. Until the first odometry step,
+    The frame starts at the origin (or where a saved run left it, ``continued_state``) with the first
+    compass heading. Until the first odometry step,
     every repeat of the first compass reading repeats the initial pose (the start of a lockstep run).
     """
     if isinstance(msg, CompassReading):
@@ -100,7 +124,7 @@ def _on_compass(state: DrState, msg: CompassReading,
     stream, verdict = track(state.compass, msg.seq, params.missing_memory)
     if verdict == DUPLICATE:
         state = replace(state, compass=stream)
-        if state.initialised and state.steps == 0:
+        if state.initialised and state.steps == state.start_steps:
             # start phase: sensor_sim repeats tick 0 until a command comes; so does the first pose,
             # for a commander that keys on dead-reckoned poses
             state, pose = _emit(state, state.last_stamp)
@@ -112,7 +136,9 @@ def _on_compass(state: DrState, msg: CompassReading,
     if not state.initialised:
         h = msg.heading_rad
         kept = tuple(o for o in state.pending if _us(o.stamp) > _us(msg.stamp))
-        state = replace(state, initialised=True, compass_pose=(0.0, 0.0, h), raw_pose=(0.0, 0.0, h),
+        x, y = state.compass_pose[:2] if state.continued else (0.0, 0.0)
+        raw = state.raw_pose if state.continued_raw else (x, y, h)
+        state = replace(state, initialised=True, compass_pose=(x, y, h), raw_pose=raw,
                         last_heading=h, last_stamp=msg.stamp, pending=kept,
                         dropped=state.dropped + len(state.pending) - len(kept))
         state, pose = _emit(state, msg.stamp)

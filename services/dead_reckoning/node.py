@@ -14,7 +14,8 @@ import zenoh
 from messages import topics
 from messages.types import CompassReading, DeadReckonedPose, OdometryStep
 from services.dead_reckoning import core
-from services.runtime import Node, positive_float
+from services.runtime import Node, finite_float, nonnegative_float, nonnegative_int, positive_float
+
 
 SERVICE = "dead_reckoning"
 log = logging.getLogger("relaxmap.dead_reckoning")
@@ -25,13 +26,14 @@ class DeadReckoningNodeParams:
     max_sim_time_s: float | None = None  # stop after integrating a step stamped at or past this time
     duration_s: float | None = None  # stop after this wall time
     filter_params: core.DeadReckoningParams = field(default_factory=core.DeadReckoningParams)  # the filter
+    start: core.DrState = field(default_factory=core.DrState)  # the state to start from (a continued run's)
 
 
 def run(session: zenoh.Session, params: DeadReckoningNodeParams = DeadReckoningNodeParams(), *,
         robot: str = topics.DEFAULT_ROBOT, stop: threading.Event | None = None) -> core.DrState:
     """Integrate the sensor streams until ``stop`` or a limit; return the final filter state."""
     stop = stop or threading.Event()
-    state = core.DrState()
+    state = params.start
     with Node(session, SERVICE, robot=robot) as node:
         pub = node.publisher(topics.dr_pose(robot), DeadReckonedPose)
         node.detail.update(steps=0, path_length_m=0.0, last_stamp_s=0.0, gaps=0, gaps_odometry=0,
@@ -87,9 +89,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-sim-time", type=positive_float, default=None, metavar="S",
                         help="stop after integrating the step that reaches this simulated time")
     parser.add_argument("--duration-s", type=positive_float, default=None, help="stop after this wall time")
+    parser.add_argument("--start-xy", type=finite_float, nargs=2, default=None, metavar=("X", "Y"),
+                        help="continue a saved run: its last compass dead-reckoned position")
+    parser.add_argument("--start-raw", type=finite_float, nargs=3, default=None, metavar=("X", "Y", "HEADING"),
+                        help="... its last raw odometry pose (default: --start-xy with the first compass heading)")
+    parser.add_argument("--start-steps", type=nonnegative_int, default=0, metavar="N",
+                        help="... the odometry steps it had integrated")
+    parser.add_argument("--start-path-m", type=nonnegative_float, default=0.0, metavar="M",
+                        help="... the distance it had integrated")
+
+
+def params_from_args(args: argparse.Namespace) -> DeadReckoningNodeParams:
+    start = core.DrState()
+    if args.start_xy is not None:
+        raw = tuple(args.start_raw) if args.start_raw is not None else None
+        start = core.continued_state(tuple(args.start_xy), raw, steps=args.start_steps,
+                                     path_length_m=args.start_path_m)
+    return DeadReckoningNodeParams(max_sim_time_s=args.max_sim_time, duration_s=args.duration_s, start=start)
 
 
 def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.Event) -> None:
     """What ``python -m services.dead_reckoning`` runs once the session is open."""
-    run(session, DeadReckoningNodeParams(max_sim_time_s=args.max_sim_time, duration_s=args.duration_s),
-        robot=args.robot, stop=stop)
+    run(session, params_from_args(args), robot=args.robot, stop=stop)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 
 import msgspec
@@ -311,6 +311,57 @@ class Explorer:
         if self.robot_xy is not None:
             self.robot_xy = (self.robot_xy[0] + shift[0], self.robot_xy[1] + shift[1])
 
+    def restore(self, places: Mapping[int, tuple[float, float]], links: Iterable[tuple[int, int, int]],
+                scans: Mapping[int, tuple[float, SonarScan]], *, at_place: int, robot_xy: tuple[float, float],
+                pose: Pose2, scan: SonarScan | None = None, next_place_id: int = 0) -> list[Event]:
+        """Continue a saved exploration: its confirmed places and traversed links, and a fresh set of
+        predicted places; returns the prediction events.
+
+        Parameters
+        ----------
+        places : mapping
+            Confirmed place id to its coordinates (the relaxed ones).
+        links : iterable of (int, int, int)
+            Traversed links ``(a, b, traversals)``; a link's confidence is the initial one raised by
+            Eq. 17 once per traversal after the first.
+        scans : mapping
+            Place id to ``(compass heading, scan)`` of a scan taken at the place: places are predicted
+            around it as around a newly confirmed place (directions it shows open, no place near).
+        at_place : int
+            The place the robot was at last: plans start from it.
+        robot_xy, pose : tuple, messages.types.Pose2
+            The robot's map position and the dead-reckoned pose it had there; later poses move it on.
+        scan : messages.types.SonarScan or None
+            The robot's latest scan (taken at ``pose``'s heading), for the controller.
+        next_place_id : int
+            New places get ids from here (and above every id of ``places``): ids are never reused.
+        """
+        if self.places:
+            raise ValueError("restore needs an explorer without places")
+        if at_place not in places:
+            raise ValueError(f"the robot's place {at_place} is not among the {len(places)} places")
+        p = self.params
+        for pid, (x, y) in sorted(places.items()):
+            self.places[pid] = Place(pid, float(x), float(y), True, NO_PLACE)
+        for a, b, traversals in links:
+            if a == b or a not in places or b not in places:
+                continue
+            confidence = p.confidence_initial
+            for _ in range(max(traversals, 1) - 1):
+                confidence = confidence_after_traversal(confidence, p.confidence_rate)
+            self.links[_key(a, b)] = Link(*_key(a, b), TRAVERSED, confidence)
+        self._next_id = max(next_place_id, max(places) + 1)
+        events: list[Event] = []
+        for pid in sorted(scans):
+            if pid in self.places:
+                events += self._predict_around(pid, *scans[pid])
+        self.current, self.last_place = NO_PLACE, at_place
+        self.robot_xy = (float(robot_xy[0]), float(robot_xy[1]))
+        self._last_pose = pose
+        if scan is not None:
+            self._last_scan, self._scan_heading = scan, pose.heading_rad
+        return events
+
     # --- queries ------------------------------------------------------------------------------
 
     def graph(self, kinds: tuple[str, ...] = (TRAVERSED, INFERRED, PREDICTED), *,
@@ -504,16 +555,7 @@ class Explorer:
         scan = self._last_scan
         if scan is not None and self._last_pose is not None:
             heading = self._scan_heading
-            for direction in open_directions(heading, scan, directions=p.directions, length_m=p.open_distance_m,
-                                             half_width_m=p.open_half_width_m, sample_step_m=p.sample_step_m,
-                                             edge_length_m=p.open_edge_distance_m):
-                cx, cy = x + p.place_spacing_m * math.cos(direction), y + p.place_spacing_m * math.sin(direction)
-                if any(math.hypot(o.x_m - cx, o.y_m - cy) < p.min_place_separation_m for o in self.places.values()):
-                    continue
-                new = self._new_id()
-                self.places[new] = Place(new, cx, cy, False, pid)
-                self.links[_key(pid, new)] = Link(*_key(pid, new), PREDICTED, p.confidence_initial)
-                events.append(PlacePredictedEvent(new, cx, cy, pid))
+            events += self._predict_around(pid, heading, scan)
             traversed = self.graph((TRAVERSED,), by_confidence=False)
             dist_traversed, _ = dijkstra(traversed, pid)
             for q in sorted(self.places.values(), key=lambda o: o.place_id):
@@ -530,6 +572,24 @@ class Explorer:
                 events.append(LinkInferredEvent(pid, q.place_id, d))
                 if dist_traversed.get(q.place_id, math.inf) > p.loop_closing_path_m:
                     self.loop_queue.append((pid, q.place_id))
+        return events
+
+    def _predict_around(self, pid: int, heading: float, scan: SonarScan) -> list[Event]:
+        """Predict places around confirmed place ``pid`` in the directions ``scan`` (taken at compass
+        ``heading``) shows open, unless a place is already near."""
+        p = self.params
+        x, y = self.places[pid].x_m, self.places[pid].y_m
+        events: list[Event] = []
+        for direction in open_directions(heading, scan, directions=p.directions, length_m=p.open_distance_m,
+                                         half_width_m=p.open_half_width_m, sample_step_m=p.sample_step_m,
+                                         edge_length_m=p.open_edge_distance_m):
+            cx, cy = x + p.place_spacing_m * math.cos(direction), y + p.place_spacing_m * math.sin(direction)
+            if any(math.hypot(o.x_m - cx, o.y_m - cy) < p.min_place_separation_m for o in self.places.values()):
+                continue
+            new = self._new_id()
+            self.places[new] = Place(new, cx, cy, False, pid)
+            self.links[_key(pid, new)] = Link(*_key(pid, new), PREDICTED, p.confidence_initial)
+            events.append(PlacePredictedEvent(new, cx, cy, pid))
         return events
 
     def _plan(self, now_s: float) -> list[Event]:

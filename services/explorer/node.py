@@ -24,6 +24,8 @@ from messages.types import (
     PlaceConfirmed,
     PlaceDeleted,
     PlacePredicted,
+    PlaceScan,
+    Pose2,
     SonarScan,
     VelocityCommand,
 )
@@ -39,7 +41,15 @@ from services.explorer.core import (
     PlaceFix,
     PlacePredictedEvent,
 )
-from services.runtime import Node, positive_float
+from services.runtime import Node, nonnegative_int, positive_float
+from services.runtime.saved_map import (
+    RobotAt,
+    SavedMap,
+    add_resume_arguments,
+    fetch_saved_map,
+    robot_at_from_args,
+    sonar_scan,
+)
 
 SERVICE = "explorer"
 log = logging.getLogger("relaxmap.explorer")
@@ -63,6 +73,10 @@ class ExplorerNodeParams:
     status_period_s: float = 1.0  # simulated time between status messages (and on every change)
     max_sim_time_s: float | None = None  # stop after answering the tick at or past this simulated time
     duration_s: float | None = None  # stop after this wall time
+    resume: bool = False  # continue the map the relaxer holds (asked over the bus before the start)
+    first_place_id: int = 0  # with resume: new places get ids from here on (above every id used before)
+    resume_near_m: float = 1.0  # places are predicted from their scans taken this close to the centre
+    resume_at: RobotAt | None = None  # with resume: where the robot was (None: by the latest stored scan)
     core: ExplorerParams = field(default_factory=ExplorerParams)  # the explorer itself
 
 
@@ -106,6 +120,29 @@ class ExplorerShell:
         n = self._seq.get(name, 0)
         self._seq[name] = n + 1
         return n
+
+    def restore(self, saved: SavedMap) -> None:
+        """Continue the saved map: its places and links, fresh predictions, the robot where it was."""
+        places = {p.place_id: (p.x_m, p.y_m) for p in saved.graph.places}
+        nearest: dict[int, PlaceScan] = {}
+        for s in saved.near:
+            best = nearest.get(s.place_id)
+            if best is None or math.hypot(s.offset_x_m, s.offset_y_m) < math.hypot(best.offset_x_m, best.offset_y_m):
+                nearest[s.place_id] = s
+        last, at = saved.latest, saved.robot
+        cx, cy = places[at.place_id]
+        events = self.core.restore(
+            places, [(lk.from_id, lk.to_id, lk.traversals) for lk in saved.graph.links],
+            {pid: (s.heading_rad, sonar_scan(s)) for pid, s in nearest.items()}, at_place=at.place_id,
+            robot_xy=(cx + at.offset_xy[0], cy + at.offset_xy[1]),
+            pose=Pose2(x_m=at.dr_xy[0], y_m=at.dr_xy[1], heading_rad=last.heading_rad), scan=sonar_scan(last),
+            next_place_id=max(self.params.first_place_id, max(saved.graph.deleted, default=-1) + 1))
+        for ev in events:
+            msg_type, name = _EVENT_TYPES[type(ev)]
+            self._publish(name, msg_type(stamp=last.stamp, seq=self._next_seq(name), **asdict(ev)))
+            self.counts["events"] += 1
+        log.info("%s: continuing %d places, %d links from place %d; %d places predicted", SERVICE, len(places),
+                 len(saved.graph.links), at.place_id, len(events))
 
     # -- inputs ---------------------------------------------------------------------------------
     def on_dr_pose(self, msg: DeadReckonedPose) -> None:
@@ -156,8 +193,9 @@ class ExplorerShell:
             return
         tick = self._tick_of(pose.stamp)
         waited = self._clock() - self._pose_wall
-        if 0 < tick and self._sensor_tick < tick and waited < self.params.localization_timeout_s:
-            return  # the odometry of this tick follows the scan of the last one: wait for it
+        if self.last_tick >= 0 and self._sensor_tick < tick and waited < self.params.localization_timeout_s:
+            return  # the odometry of this tick follows the scan of the last one: wait for it (the first
+            # tick, 0 or the one a continued run starts at, comes without odometry)
         earlier = sorted(t for t in self._scans if t < tick)
         missing = [t for t in earlier if t not in self._beliefs]
         if missing and self.params.wait_localization:
@@ -213,6 +251,8 @@ def run(session: zenoh.Session, params: ExplorerNodeParams = ExplorerNodeParams(
                                      history=topics.MAP_EVENT_HISTORY if name in topics.MAP_EVENT_TOPICS else 0)
                 for name, type_ in _TYPES.items()}
         shell = ExplorerShell(params, lambda name, msg: pubs[name].put(msg))
+        if params.resume:
+            shell.restore(fetch_saved_map(session, robot, near_m=params.resume_near_m, at=params.resume_at))
 
         def update_detail() -> None:
             node.detail.update(shell.counts)
@@ -262,6 +302,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-sim-time", type=positive_float, default=None, metavar="S",
                         help="stop after answering the tick that reaches this simulated time")
     parser.add_argument("--duration-s", type=positive_float, default=None, help="stop after this wall time")
+    add_resume_arguments(parser)
+    parser.add_argument("--first-place-id", type=nonnegative_int, default=0, metavar="N",
+                        help="with --resume: new places get ids from N on (above every id used before)")
 
 
 def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.Event) -> None:
@@ -269,4 +312,6 @@ def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.E
     run(session, ExplorerNodeParams(dt_s=args.dt_s, wait_localization=not args.no_wait_localization,
                                     localization_timeout_s=args.localization_timeout_s,
                                     follow_map=not args.no_follow_map, max_sim_time_s=args.max_sim_time,
-                                    duration_s=args.duration_s), robot=args.robot, stop=stop)
+                                    duration_s=args.duration_s, resume=args.resume,
+                                    first_place_id=args.first_place_id, resume_at=robot_at_from_args(args)),
+        robot=args.robot, stop=stop)

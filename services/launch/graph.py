@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import msgspec
@@ -25,7 +27,8 @@ class ServiceSpec(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     module: str  # run as `python -m <module>`
     inputs: list[str] = []  # names of messages.topics functions the service subscribes to
     outputs: list[str] = []  # names of messages.topics functions it publishes or serves
-    args: list[str] = []  # extra arguments; {world} {seed} {out} {max_sim_time} {viewer} expand
+    args: list[str] = []  # extra arguments; {world} {seed} {out} {max_sim_time} {viewer} {recording} and the
+    # {resume_<service>} lists expand (relaxmap run's values)
     restart: RestartPolicy = RestartPolicy()
     required: bool = True  # the run fails when a required service dies and cannot be restarted
 
@@ -85,9 +88,23 @@ def check_graph(graph: ProcessGraph) -> list[str]:
     return problems
 
 
-def expand_args(spec: ServiceSpec, values: dict[str, str]) -> list[str]:
-    """The service's extra arguments with their ``{name}`` fields filled in (empty results dropped)."""
-    try:
-        return [arg for a in spec.args if (arg := a.format(**values))]
-    except KeyError as e:
-        raise GraphError(f"{spec.name}: unknown field {e} in args") from None
+def expand_args(spec: ServiceSpec, values: Mapping[str, str | Sequence[str]]) -> list[str]:
+    """The service's extra arguments with their ``{name}`` fields filled in (empty results dropped).
+
+    An argument that is one field alone, whose value is a list, becomes the list's items (none when
+    it is empty): ``"{resume}"`` with ``["--resume", "--first-place-id", "7"]``.
+    """
+    text = {k: v for k, v in values.items() if isinstance(v, str)}
+    out: list[str] = []
+    for a in spec.args:
+        alone = re.fullmatch(r"\{(\w+)\}", a)
+        if alone and alone.group(1) in values and not isinstance(values[alone.group(1)], str):
+            out += [str(v) for v in values[alone.group(1)]]
+            continue
+        try:
+            arg = a.format(**text)
+        except KeyError as e:
+            raise GraphError(f"{spec.name}: unknown field {e} in args") from None
+        if arg:
+            out.append(arg)
+    return out

@@ -5,25 +5,77 @@ from __future__ import annotations
 import bisect
 import threading
 import time
+from collections import deque
 
+import msgspec
 import zenoh
 
 from messages import topics
 from messages.codec import DecodeError, codec
 from messages.types import (
+    DeadReckonedPose,
     ExplorationStatus,
     LinkDeleted,
     LinkInferred,
     LinkMeasured,
+    LocalizationBelief,
     MapUpdate,
     PlaceConfirmed,
     PlaceDeleted,
+    PlacePredicted,
     TruthPose,
 )
 
 
+DR_HISTORY = 4096  # recent dead-reckoned positions kept, to pair the last localization with its own
+
+
 def _pair(a: int, b: int) -> tuple[int, int]:
     return (a, b) if a <= b else (b, a)
+
+
+class RobotState(msgspec.Struct, frozen=True, kw_only=True):
+    """Where the robot was at the last dead-reckoned pose of a run: true and dead-reckoned."""
+
+    stamp: float  # simulated time of that pose
+    tick: int  # the simulator's tick of that time
+    truth: tuple[float, float, float]  # true x_m, y_m, heading_rad at the same tick
+    dr_xy: tuple[float, float]  # compass dead-reckoned position
+    dr_raw: tuple[float, float, float]  # raw odometry pose
+    steps: int  # odometry steps integrated
+    path_length_m: float  # distance integrated
+    fix: PlaceFixState | None = None  # the last localization at a place (None: none was heard)
+
+
+class PlaceFixState(msgspec.Struct, frozen=True, kw_only=True):
+    """The recognizer's last localization at a place, with the dead-reckoned position of its stamp: the
+    robot's map position is the place's centre plus the offset, moved on by dead reckoning since."""
+
+    stamp: float
+    place_id: int
+    offset_xy: tuple[float, float]  # robot minus place centre
+    dr_xy: tuple[float, float]  # compass dead-reckoned position at ``stamp``
+
+
+class SavedPlace(msgspec.Struct, frozen=True, kw_only=True):
+    """A place of an earlier part: its true position and its coordinates when first confirmed."""
+
+    place_id: int
+    truth: tuple[float, float]
+    dead_reckoning: tuple[float, float]
+
+
+class MonitorState(msgspec.Struct, frozen=True, kw_only=True):
+    """The monitor's counts at the end of a run, for the part that continues it (in run.json)."""
+
+    sim_time_s: float
+    max_place_id: int
+    places: list[SavedPlace]
+    deleted_places: list[int]
+    measured: list[tuple[int, int]]
+    inferred: list[tuple[int, int]]
+    deleted_links: list[tuple[int, int]]
+    robot: RobotState | None = None  # None: no dead-reckoned pose was heard
 
 
 class RunMonitor:
@@ -31,6 +83,9 @@ class RunMonitor:
 
     Ground truth is kept here, in the launcher, and never reaches a mapping service: the true pose
     history gives each confirmed place its true position (the robot's at the confirmation stamp).
+    What a continued run needs of an earlier part (``saved_state``, ``restore``) is kept as well:
+    the links measured and deleted, the places' true and first positions, the highest place id used,
+    and where the robot was (true and dead-reckoned pose of the same tick).
     """
 
     def __init__(self, session: zenoh.Session, robot: str) -> None:
@@ -40,7 +95,14 @@ class RunMonitor:
         self.last_update: MapUpdate | None = None
         self.status: ExplorationStatus | None = None
         self._truth_t: list[float] = []
-        self._truth_xy: list[tuple[float, float]] = []
+        self._truth_pose: list[tuple[float, float, float]] = []
+        self._truth_tick: list[int] = []
+        self._last_dr: DeadReckonedPose | None = None
+        self._dr_recent: deque[tuple[float, float, float]] = deque(maxlen=DR_HISTORY)  # stamp, x, y
+        self._last_fix: LocalizationBelief | None = None
+        self.max_place_id = -1  # the highest place id heard of (predicted, confirmed or deleted)
+        self._saved_truth: dict[int, tuple[float, float]] = {}  # places of earlier parts of the run
+        self._saved_dr: dict[int, tuple[float, float]] = {}
         self.confirmed: dict[int, PlaceConfirmed] = {}
         self.deleted_places: set[int] = set()
         self.measured: set[tuple[int, int]] = set()
@@ -51,7 +113,10 @@ class RunMonitor:
             topics.truth_pose(robot): (TruthPose, self._on_truth),
             topics.map_update(robot): (MapUpdate, self._on_update),
             topics.exploration_status(robot): (ExplorationStatus, self._on_status),
+            topics.places_predicted(robot): (PlacePredicted, self._on_predicted),
             topics.places_confirmed(robot): (PlaceConfirmed, self._on_confirmed),
+            topics.dr_pose(robot): (DeadReckonedPose, self._on_dr),
+            topics.localization(robot): (LocalizationBelief, self._on_localization),
             topics.places_deleted(robot): (PlaceDeleted, self._on_place_deleted),
             topics.links_measured(robot): (LinkMeasured, self._on_measured),
             topics.links_inferred(robot): (LinkInferred, self._on_inferred),
@@ -78,7 +143,31 @@ class RunMonitor:
         self.sim_time_s = max(self.sim_time_s, msg.stamp)
         i = bisect.bisect(self._truth_t, msg.stamp)
         self._truth_t.insert(i, msg.stamp)
-        self._truth_xy.insert(i, (msg.pose.x_m, msg.pose.y_m))
+        self._truth_pose.insert(i, (msg.pose.x_m, msg.pose.y_m, msg.pose.heading_rad))
+        self._truth_tick.insert(i, msg.seq)
+
+    def _on_dr(self, msg: DeadReckonedPose) -> None:
+        if self._last_dr is None or msg.stamp >= self._last_dr.stamp:
+            self._last_dr = msg
+            self._dr_recent.append((msg.stamp, msg.compass.x_m, msg.compass.y_m))
+
+    def _on_localization(self, msg: LocalizationBelief) -> None:
+        if msg.place_id >= 0 and (self._last_fix is None or msg.stamp >= self._last_fix.stamp):
+            self._last_fix = msg
+
+    def _fix_state(self) -> PlaceFixState | None:
+        """The last localization at a place, with the dead-reckoned position of its stamp (if kept)."""
+        f = self._last_fix
+        if f is None or f.place_id in self.deleted_places:
+            return None
+        for stamp, x, y in reversed(self._dr_recent):
+            if abs(stamp - f.stamp) < 1e-6:
+                return PlaceFixState(stamp=f.stamp, place_id=f.place_id, offset_xy=(f.offset_x_m, f.offset_y_m),
+                                     dr_xy=(x, y))
+        return None
+
+    def _on_predicted(self, msg: PlacePredicted) -> None:
+        self.max_place_id = max(self.max_place_id, msg.place_id)
 
     def _on_update(self, msg: MapUpdate) -> None:
         if self.last_update is None or msg.version >= self.last_update.version:
@@ -89,9 +178,11 @@ class RunMonitor:
 
     def _on_confirmed(self, msg: PlaceConfirmed) -> None:
         self.confirmed.setdefault(msg.place_id, msg)
+        self.max_place_id = max(self.max_place_id, msg.place_id)
 
     def _on_place_deleted(self, msg: PlaceDeleted) -> None:
         self.deleted_places.add(msg.place_id)
+        self.max_place_id = max(self.max_place_id, msg.place_id)
 
     def _on_measured(self, msg: LinkMeasured) -> None:
         self.measured.add(_pair(msg.from_id, msg.to_id))
@@ -110,31 +201,68 @@ class RunMonitor:
             wall = time.monotonic() - self.started
             return {"sim_time_s": self.sim_time_s, "wall_time_s": wall,
                     "places": up.places if up else 0, "links": up.links if up else 0,
-                    "energy": up.energy if up else float("nan"),
+                    "energy": up.energy if up else float("nan"), "version": up.version if up else 0,
                     "rtf": self.sim_time_s / wall if wall > 0 else 0.0,
                     "complete": bool(self.status and self.status.complete)}
 
     def place_truth(self) -> dict[int, tuple[float, float]]:
-        """True position of every confirmed place that was not deleted."""
+        """True position of every confirmed place that was not deleted (earlier parts' included)."""
         with self._lock:
-            out = {}
+            out = {pid: xy for pid, xy in self._saved_truth.items() if pid not in self.deleted_places}
             for pid, msg in self.confirmed.items():
                 if pid in self.deleted_places or not self._truth_t:
                     continue
-                i = min(max(bisect.bisect(self._truth_t, msg.stamp) - 1, 0), len(self._truth_t) - 1)
-                out[pid] = self._truth_xy[i]
+                out[pid] = self._truth_pose[self._truth_index(msg.stamp)][:2]
             return out
+
+    def _truth_index(self, stamp: float) -> int:
+        """Index of the latest true pose at or before ``stamp`` (the first one if all are later)."""
+        return min(max(bisect.bisect(self._truth_t, stamp + 1e-9) - 1, 0), len(self._truth_t) - 1)
 
     def place_dead_reckoning(self) -> dict[int, tuple[float, float]]:
         """Coordinates of every confirmed place as first confirmed (compass dead reckoning)."""
         with self._lock:
-            return {pid: (m.x_m, m.y_m) for pid, m in self.confirmed.items() if pid not in self.deleted_places}
+            out = {pid: xy for pid, xy in self._saved_dr.items() if pid not in self.deleted_places}
+            out.update((pid, (m.x_m, m.y_m)) for pid, m in self.confirmed.items() if pid not in self.deleted_places)
+            return out
 
     def links_lost(self, in_map: set[tuple[int, int]]) -> set[tuple[int, int]]:
         """Measured links missing from ``in_map`` that were not deleted on purpose (nor their places)."""
         with self._lock:
             return {p for p in self.measured - in_map - self.deleted_links
                     if p[0] not in self.deleted_places and p[1] not in self.deleted_places}
+
+    def saved_state(self) -> MonitorState:
+        """What a continued run needs to go on counting (see ``restore``)."""
+        truth, dr = self.place_truth(), self.place_dead_reckoning()
+        with self._lock:
+            robot = None
+            if self._last_dr is not None and self._truth_t:
+                d = self._last_dr
+                i = self._truth_index(d.stamp)
+                robot = RobotState(
+                    stamp=d.stamp, tick=self._truth_tick[i], truth=self._truth_pose[i],
+                    dr_xy=(d.compass.x_m, d.compass.y_m),
+                    dr_raw=(d.raw.x_m, d.raw.y_m, d.raw.heading_rad), steps=d.steps, path_length_m=d.path_length_m,
+                    fix=self._fix_state())
+            return MonitorState(
+                sim_time_s=self.sim_time_s, max_place_id=self.max_place_id,
+                places=[SavedPlace(place_id=pid, truth=truth[pid], dead_reckoning=dr[pid])
+                        for pid in sorted(truth) if pid in dr],
+                deleted_places=sorted(self.deleted_places), measured=sorted(self.measured),
+                inferred=sorted(self.inferred), deleted_links=sorted(self.deleted_links), robot=robot)
+
+    def restore(self, state: MonitorState) -> None:
+        """Go on from an earlier part of the run: its links, places and simulated time count."""
+        with self._lock:
+            self.sim_time_s = max(self.sim_time_s, state.sim_time_s)
+            self.max_place_id = max(self.max_place_id, state.max_place_id)
+            self._saved_truth.update((p.place_id, p.truth) for p in state.places)
+            self._saved_dr.update((p.place_id, p.dead_reckoning) for p in state.places)
+            self.deleted_places.update(state.deleted_places)
+            self.measured.update(_pair(*p) for p in state.measured)
+            self.inferred.update(_pair(*p) for p in state.inferred)
+            self.deleted_links.update(_pair(*p) for p in state.deleted_links)
 
     def close(self) -> None:
         for s in self._subs:

@@ -35,7 +35,7 @@ def write_grid(grid: OccupancyGrid, png: Path, yaml: Path | None) -> None:
 
 def summary(*, world: str, seed: int, graph: MapGraph, stats: MapStats, links_measured: int, links_lost: int,
             links_inferred: int, sim_time_s: float, wall_time_s: float, complete: bool,
-            ate_relaxed_m: float, ate_dead_reckoning_m: float, restarts: dict[str, int]) -> dict:
+            ate_relaxed_m: float, ate_dead_reckoning_m: float, restarts: dict[str, int], parts: int = 1) -> dict:
     """summary.json's content (architecture.md), with loss made visible (``links_lost``)."""
     return {
         "world": world,
@@ -58,6 +58,7 @@ def summary(*, world: str, seed: int, graph: MapGraph, stats: MapStats, links_me
         "cycle_ms_p99": round(stats.cycle_ms_p99, 3),
         "noise": {"s_dd": graph.noise.s_dd, "s_aa": graph.noise.s_aa, "s_da": graph.noise.s_da},
         "restarts": restarts,
+        "parts": parts,
     }
 
 
@@ -107,7 +108,7 @@ def write_map_files(graph: MapGraph, map_json: Path, map_g2o: Path) -> None:
 
 
 def write_outputs(session, robot: str, out: Path, monitor, *, world: str, seed: int, wall_time_s: float,
-                  restarts: dict[str, int], grid_resolution_m: float = 0.15) -> dict:
+                  restarts: dict[str, int], parts: int = 1, grid_resolution_m: float = 0.15) -> dict:
     """Ask the relaxer for the final map and write every output file of the run; returns the summary."""
     from messages import topics
     from services.launch.evaluate import ate_m
@@ -132,7 +133,8 @@ def write_outputs(session, robot: str, out: Path, monitor, *, world: str, seed: 
                      links_lost=len(lost), links_inferred=len(monitor.inferred), sim_time_s=monitor.sim_time_s,
                      wall_time_s=wall_time_s, complete=bool(monitor.progress()["complete"]),
                      ate_relaxed_m=ate_m(relaxed, truth, first),
-                     ate_dead_reckoning_m=ate_m(monitor.place_dead_reckoning(), truth, first), restarts=restarts)
+                     ate_dead_reckoning_m=ate_m(monitor.place_dead_reckoning(), truth, first), restarts=restarts,
+                     parts=parts)
     if lost:
         result["links_lost_pairs"] = sorted(lost)
     write_json(out / "truth.json", {"places": [{"id": i, "x": x, "y": y} for i, (x, y) in sorted(truth.items())],

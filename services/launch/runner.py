@@ -6,6 +6,8 @@ import argparse
 import json
 import logging
 import time
+import uuid
+from dataclasses import dataclass
 from pathlib import Path
 
 import zenoh
@@ -15,6 +17,15 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from messages import topics
 from services.launch.graph import GraphError, load_graph
 from services.launch.monitor import RunMonitor
+from services.launch.resume import (
+    RUN_FORMAT,
+    ResumeError,
+    RunRecord,
+    read_run_record,
+    recording_name,
+    write_run_record,
+)
+from services.launch.run_cli import DEFAULT_OUT, DEFAULT_WORLD, RESUME_START_TIMEOUT_S, START_TIMEOUT_S
 from services.launch.supervisor import Supervisor
 from services.runtime import AliveWatcher, QueryFailed, deploy_file, loopback_config, shutdown_event
 from services.runtime.procs import free_port
@@ -42,15 +53,100 @@ def resolve_world(world: str) -> str:
     return str(path.resolve())
 
 
+@dataclass(frozen=True)
+class RunPlan:
+    """What this run is: where it writes, its world and seed, and the saved run it continues (if any)."""
+
+    out: Path
+    world: str  # as given (or as the saved run gave it)
+    world_ref: str  # built-in name or absolute file path
+    seed: int
+    saved: RunRecord | None  # the run continued, None for a new one
+
+    @property
+    def part(self) -> int:
+        return 1 if self.saved is None else self.saved.parts + 1
+
+
+def plan_run(args: argparse.Namespace) -> RunPlan:
+    """Check the command line against the saved run (with ``--resume``); ``RunError`` says what is wrong."""
+    if args.resume is None:
+        world = args.world or DEFAULT_WORLD
+        out = Path(args.out or DEFAULT_OUT).resolve()
+        return RunPlan(out=out, world=world, world_ref=resolve_world(world),
+                       seed=0 if args.seed is None else args.seed, saved=None)
+    out = Path(args.resume).resolve()
+    if args.out is not None and Path(args.out).resolve() != out:
+        raise RunError(f"--out {args.out} and --resume {args.resume} differ: a continued run writes into the "
+                       "directory of the run it continues")
+    try:
+        saved = read_run_record(out)
+    except ResumeError as e:
+        raise RunError(f"cannot resume: {e}") from e
+    if args.world is not None and resolve_world(args.world) != saved.world_ref:
+        raise RunError(f"cannot resume: --world {args.world} contradicts the saved run's world {saved.world!r} "
+                       "(leave --world out to continue it)")
+    if args.seed is not None and args.seed != saved.seed:
+        raise RunError(f"cannot resume: --seed {args.seed} contradicts the saved run's seed {saved.seed} "
+                       "(leave --seed out to continue it)")
+    if args.max_sim_time <= saved.sim_time_s:
+        raise RunError(f"cannot resume: the saved run is at {saved.sim_time_s:.1f} simulated seconds already; "
+                       f"--max-sim-time ({args.max_sim_time:g}) must go beyond it")
+    world_ref = saved.world_ref
+    if world_ref not in builtin_world_names() and not Path(world_ref).is_file():
+        raise RunError(f"cannot resume: the saved run's world file {world_ref} is gone")
+    return RunPlan(out=out, world=saved.world, world_ref=world_ref, seed=saved.seed, saved=saved)
+
+
+def builtin_world_names() -> list[str]:
+    from sim.world import builtin_worlds
+
+    return list(builtin_worlds())
+
+
+def _number(value: float) -> str:
+    """A number as an argument: fixed-point, so that argparse takes a negative one as a value (it would
+    take ``-1e-05`` for an option), to 1e-12."""
+    return f"{float(value):.12f}"
+
+
+def resume_values(plan: RunPlan) -> dict[str, list[str]]:
+    """The ``{resume_<service>}`` arguments of the process graph: empty for a new run."""
+    values: dict[str, list[str]] = {f"resume_{n}": [] for n in
+                                    ("sensor_sim", "dead_reckoning", "place_recognizer", "explorer")}
+    if plan.saved is None:
+        return values
+    m = plan.saved.monitor
+    r = m.robot
+    assert r is not None  # read_run_record refuses a run without it
+    values["resume_sensor_sim"] = ["--start-pose", *map(_number, r.truth), "--start-tick", str(r.tick)]
+    values["resume_dead_reckoning"] = ["--start-xy", *map(_number, r.dr_xy), "--start-raw", *map(_number, r.dr_raw),
+                                       "--start-steps", str(r.steps), "--start-path-m", _number(r.path_length_m)]
+    at: list[str] = []
+    if r.fix is not None:  # where the recognizer last localised the robot (else the services ask the map)
+        at = ["--resume-place", str(r.fix.place_id), "--resume-offset", *map(_number, r.fix.offset_xy),
+              "--resume-dr", *map(_number, r.fix.dr_xy)]
+    values["resume_place_recognizer"] = ["--resume", *at]
+    values["resume_explorer"] = ["--resume", *at, "--first-place-id", str(m.max_place_id + 1)]
+    return values
+
+
 def run(args: argparse.Namespace) -> int:
     console = Console(stderr=True, log_path=False)
-    out = Path(args.out).resolve()
+    plan = plan_run(args)
+    out = plan.out
     out.mkdir(parents=True, exist_ok=True)
     try:
         graph = load_graph(args.graph or deploy_file("graph.json"))
     except GraphError as e:
         raise RunError(str(e)) from e
-    world = resolve_world(args.world)
+    world = plan.world_ref
+    saved = plan.saved
+    recording_id = saved.recording_id if saved is not None else str(uuid.uuid4())
+    recordings = [*(saved.recordings if saved is not None else []), recording_name(plan.part)]
+    if saved is not None:
+        console.log(f"continuing the run in {out} (part {plan.part}) at {saved.sim_time_s:.1f} simulated s: "
+                    f"world {saved.world}, seed {saved.seed}, {saved.places} places")
     robot = topics.DEFAULT_ROBOT
     port = args.port or free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -59,16 +155,22 @@ def run(args: argparse.Namespace) -> int:
     except zenoh.ZError as e:
         raise RunError(f"cannot listen on {endpoint} ({e}); is another run using it? Try --port 0") from e
     stop = shutdown_event()
-    values = {"world": world, "seed": str(args.seed), "out": str(out), "max_sim_time": f"{args.max_sim_time:g}",
-              "viewer": "--viewer" if args.viewer else ""}
+    values = {"world": world, "seed": str(plan.seed), "out": str(out), "max_sim_time": f"{args.max_sim_time:g}",
+              "viewer": "--viewer" if args.viewer else "", "recording": str(out / recordings[-1]),
+              "recording_id": recording_id, **resume_values(plan)}
     common = ["--connect", endpoint, "--listen", "tcp/127.0.0.1:0", "--robot", robot]
     supervisor = Supervisor(graph, common_args=common, values=values, log_dir=out / "logs", on_event=console.log)
     monitor = RunMonitor(session, robot)
+    if saved is not None:
+        monitor.restore(saved.monitor)
     watcher = AliveWatcher(session, robot, on_change=lambda name, up: None if up else log.info("%s left", name))
     wall0 = time.monotonic()
     try:
         supervisor.start()
-        deadline = time.monotonic() + args.start_timeout_s
+        start_timeout_s = args.start_timeout_s
+        if start_timeout_s is None:
+            start_timeout_s = START_TIMEOUT_S if saved is None else RESUME_START_TIMEOUT_S
+        deadline = time.monotonic() + start_timeout_s
         while not watcher.wait_alive(graph.names(), 0.2):
             supervisor.poll()
             if supervisor.failure:
@@ -77,18 +179,28 @@ def run(args: argparse.Namespace) -> int:
             if stop.is_set():
                 raise RunError(f"stopped by signal before every service was alive (missing: {missing})")
             if time.monotonic() > deadline:
-                raise RunError(f"not alive after {args.start_timeout_s:g} s: {missing} (logs in {out / 'logs'})")
+                raise RunError(f"not alive after {start_timeout_s:g} s: {missing} (logs in {out / 'logs'})")
         console.log(f"all {len(graph.services)} services alive on {endpoint}")
         reason = _watch(args, supervisor, monitor, stop, console)
         console.log(f"run ends: {reason}")
+        # the robot stops first, so that the map, the robot's state and run.json tell of the same moment
+        if "sensor_sim" in supervisor.services:
+            supervisor.halt("sensor_sim")
+        _settle(monitor)
         from services.launch.outputs import write_outputs
 
+        wall_before = saved.wall_time_s if saved is not None else 0.0
         try:
-            summary = write_outputs(session, robot, out, monitor, world=args.world, seed=args.seed,
-                                    wall_time_s=time.monotonic() - wall0,
+            summary = write_outputs(session, robot, out, monitor, world=plan.world, seed=plan.seed,
+                                    wall_time_s=wall_before + time.monotonic() - wall0, parts=plan.part,
                                     restarts={n: sv.restarts for n, sv in supervisor.services.items()})
         except QueryFailed as e:
             raise RunError(f"could not get the final map from the relaxer: {e} (logs in {out / 'logs'})") from e
+        write_run_record(out, RunRecord(
+            format=RUN_FORMAT, world=plan.world, world_ref=plan.world_ref, seed=plan.seed, parts=plan.part,
+            sim_time_s=monitor.sim_time_s, wall_time_s=summary["wall_time_s"],
+            exploration_complete=summary["exploration_complete"], places=summary["places"],
+            recording_id=recording_id, recordings=recordings, monitor=monitor.saved_state()))
     finally:
         codes = supervisor.stop()
         watcher.close()
@@ -99,6 +211,18 @@ def run(args: argparse.Namespace) -> int:
         console.log(f"services that did not stop cleanly: {bad}")
     console.print_json(json.dumps(summary))
     return 0
+
+
+def _settle(monitor: RunMonitor, *, quiet_s: float = 0.5, max_s: float = 5.0) -> None:
+    """Wait until no map update came for ``quiet_s`` (at most ``max_s``): the last events are in."""
+    end = time.monotonic() + max_s
+    last = monitor.progress()
+    quiet_since = time.monotonic()
+    while (now := time.monotonic()) < end and now - quiet_since < quiet_s:
+        time.sleep(0.05)
+        p = monitor.progress()
+        if p["version"] != last["version"]:
+            last, quiet_since = p, time.monotonic()
 
 
 def _watch(args: argparse.Namespace, supervisor: Supervisor, monitor: RunMonitor, stop, console: Console) -> str:

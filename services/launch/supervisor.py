@@ -29,6 +29,7 @@ class Supervised:
     restart_at: float | None = None  # monotonic time of a pending restart
     exits: list[int] = field(default_factory=list)  # exit codes seen (negative: killed by signal)
     log_file: IO[bytes] | None = None
+    halted: bool = False  # stopped on purpose before the others (never restarted)
 
 
 class Supervisor:
@@ -72,6 +73,8 @@ class Supervisor:
         """Notice exits, schedule and carry out restarts."""
         now = self._clock()
         for name, sv in self.services.items():
+            if sv.halted:
+                continue
             if sv.proc is None:
                 if sv.restart_at is not None and now >= sv.restart_at and not self.stopping:
                     sv.restarts += 1
@@ -103,6 +106,32 @@ class Supervisor:
         sv = self.services[name]
         if sv.proc is not None and sv.proc.poll() is None:
             os.killpg(sv.proc.pid, sig)
+
+    def halt(self, name: str, *, timeout_s: float = 10.0) -> int | None:
+        """Stop one service now (SIGTERM, SIGKILL if it lingers) and never restart it; its exit code
+        (None if it was not running)."""
+        sv = self.services[name]
+        sv.halted = True
+        sv.restart_at = None
+        if sv.proc is None:
+            return None
+        if sv.proc.poll() is None:
+            try:
+                os.killpg(sv.proc.pid, signal.SIGTERM)
+            except ProcessLookupError:
+                pass
+            try:
+                sv.proc.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                self._on_event(f"{name} did not stop within {timeout_s:g} s: SIGKILL")
+                try:
+                    os.killpg(sv.proc.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+        code = sv.proc.wait()
+        sv.exits.append(code)
+        sv.proc = None
+        return code
 
     def stop(self, *, order: list[str] | None = None, timeout_s: float = 10.0) -> dict[str, int]:
         """SIGTERM every service (in ``order``, default the graph's reverse), SIGKILL the ones that linger.

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -298,6 +298,68 @@ class PlaceRecognizer:
         links = self._arrive_or_leave(place_id, dr, settled_now=True)
         return RecognizerOutput(localization=self.localization(), links=links,
                                 diagnostics={"places": float(self.belief.ids.size)})
+
+    def restore(self, places: Mapping[int, tuple[float, float]], links: Iterable[LinkEstimate],
+                scans: Mapping[int, Sequence[PlacedScan]], *, at_place: int,
+                offset_xy: tuple[float, float], dr_xy: tuple[float, float]) -> None:
+        """Continue a saved map: its places, fused links and signatures, and where the robot is.
+
+        Parameters
+        ----------
+        places : mapping
+            Place id to centre (the relaxed coordinates).
+        links : iterable of LinkEstimate
+            The map's fused measurements; later traversals are fused into them.
+        scans : mapping
+            Place id to the scans taken at it, each placed at its offset from the place's centre
+            (frame of the centre at the origin): they build the place's signature.
+        at_place, offset_xy, dr_xy : int, tuple, tuple
+            The place the robot was last at, its offset from the centre, and its dead-reckoned
+            position then; later poses move the belief on from there.
+
+        Notes
+        -----
+        A signature is rebuilt from the scans within ``signature_radius_m`` of the centre (or, when
+        none is, from the nearest one), as :meth:`add_place` builds it from the scans around a new
+        place. A link's accumulator is rebuilt from its fused measurement: ``T`` steps weigh ``1 / T``.
+        The belief starts with ``confirmed_probability`` at ``at_place`` (at ``offset_xy``), the
+        rest on "none"; the robot is between places until an observation says where it is.
+        """
+        if self.belief.ids.size:
+            raise ValueError("restore needs a recognizer without places")
+        p = self.params
+        ids = sorted(places)
+        for pid in ids:
+            placed = list(scans.get(pid, ()))
+            if not placed:
+                continue
+            near = [s for s in placed if np.hypot(s.x_m, s.y_m) <= p.signature_radius_m]
+            near = near or [min(placed, key=lambda s: np.hypot(s.x_m, s.y_m))]
+            grid = build_grid(near, (0.0, 0.0), half_width_m=p.grid_half_width_m, cell_m=p.cell_m,
+                              logodds_occupied=p.logodds_occupied, logodds_empty=p.logodds_empty,
+                              echo_thickness_m=p.echo_thickness_m)
+            self._signatures[pid] = _Signature(grid, histograms(classify(grid, p.logodds_threshold)), (0.0, 0.0))
+        for lk in links:
+            if lk.from_id in places and lk.to_id in places:
+                w = 1.0 / max(lk.steps, 1)
+                disp = lk.d_m * np.array([np.cos(lk.theta_rad), np.sin(lk.theta_rad)])
+                self._links[frozenset((lk.from_id, lk.to_id))] = LinkAccumulator(
+                    lk.from_id, lk.to_id, w, w * disp, w * lk.mean_step_m, lk.traversals)
+        n = len(ids)
+        probs = np.zeros(n)
+        offsets = np.zeros((n, 2))
+        none_prob = 1.0
+        if at_place in places:
+            row = ids.index(at_place)
+            probs[row], none_prob = p.confirmed_probability, 1.0 - p.confirmed_probability
+            offsets[row] = offset_xy
+        self.belief = _belief.Belief(
+            ids=np.array(ids, dtype=int), centres=np.array([places[i] for i in ids], dtype=float).reshape(-1, 2),
+            probs=probs, offsets=offsets, offset_vars=np.zeros((n, 2)), none_prob=none_prob,
+            none_xy=np.asarray(dr_xy, dtype=float), none_var_m2=0.0)
+        self._last_xy = (float(dr_xy[0]), float(dr_xy[1]))
+        self.current = NO_PLACE
+        self._first_visit = NO_PLACE
 
     def remove_place(self, place_id: int) -> None:
         """Forget a deleted place: its belief mass, signature and links."""

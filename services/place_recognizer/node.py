@@ -11,6 +11,7 @@ import time
 from collections import deque
 from dataclasses import asdict, dataclass, field
 
+import numpy as np
 import zenoh
 
 from messages import topics
@@ -26,8 +27,16 @@ from messages.types import (
     SonarScan,
     VelocityCommand,
 )
-from services.place_recognizer.core import PlaceRecognizer, PlaceRecognizerParams, RecognizerOutput
+from services.place_recognizer.core import LinkEstimate, PlaceRecognizer, PlaceRecognizerParams, RecognizerOutput
+from services.place_recognizer.grid import PlacedScan
 from services.runtime import Node, positive_float
+from services.runtime.saved_map import (
+    RobotAt,
+    SavedMap,
+    add_resume_arguments,
+    fetch_saved_map,
+    robot_at_from_args,
+)
 
 SERVICE = "place_recognizer"
 log = logging.getLogger("relaxmap.place_recognizer")
@@ -42,6 +51,9 @@ class PlaceRecognizerNodeParams:
     order_timeout_s: float = 0.5  # wall time an input waits for the inputs that must come first
     max_sim_time_s: float | None = None  # stop after the pose stamped at or past this simulated time
     duration_s: float | None = None  # stop after this wall time
+    resume: bool = False  # continue the map the relaxer holds (asked over the bus before the start)
+    resume_near_m: float = 1.0  # signatures are rebuilt from the scans taken this close to a centre
+    resume_at: RobotAt | None = None  # with resume: where the robot was (None: by the latest stored scan)
     core: PlaceRecognizerParams = field(default_factory=PlaceRecognizerParams)  # the recognizer itself
 
 
@@ -86,6 +98,22 @@ class RecognizerShell:
 
     def _tick(self, stamp: float) -> int:
         return round(stamp / self.params.dt_s)
+
+    def restore(self, saved: SavedMap) -> None:
+        """Continue the saved map: places, fused links, signatures from the stored scans, the robot's place."""
+        places = {p.place_id: (p.x_m, p.y_m) for p in saved.graph.places}
+        links = [LinkEstimate(from_id=lk.from_id, to_id=lk.to_id, d_m=lk.d_m, theta_rad=lk.theta_rad, steps=lk.steps,
+                              mean_step_m=lk.mean_step_m, traversals=lk.traversals) for lk in saved.graph.links]
+        scans: dict[int, list[PlacedScan]] = {}
+        for s in saved.near:  # placed at their offset from the place's centre
+            scans.setdefault(s.place_id, []).append(PlacedScan(
+                x_m=s.offset_x_m, y_m=s.offset_y_m, heading_rad=s.heading_rad, angles_rad=np.asarray(s.angles_rad),
+                ranges_m=np.asarray(s.ranges_m), beam_width_rad=s.beam_width_rad, min_range_m=0.0,
+                max_range_m=s.max_range_m))
+        at = saved.robot
+        self.core.restore(places, links, scans, at_place=at.place_id, offset_xy=at.offset_xy, dr_xy=at.dr_xy)
+        log.info("%s: continuing %d places (%d signatures), %d links; robot last at place %d", SERVICE,
+                 len(places), len(scans), len(links), at.place_id)
 
     # -- inputs ---------------------------------------------------------------------------------
     def on_dr_pose(self, msg: DeadReckonedPose) -> None:
@@ -215,6 +243,8 @@ def run(session: zenoh.Session, params: PlaceRecognizerNodeParams = PlaceRecogni
         pub_belief = node.publisher(topics.localization(robot), LocalizationBelief)
         pub_link = node.publisher(topics.links_measured(robot), LinkMeasured, history=topics.MAP_EVENT_HISTORY)
         shell = RecognizerShell(params, pub_belief.put, pub_link.put)
+        if params.resume:
+            shell.restore(fetch_saved_map(session, robot, near_m=params.resume_near_m, at=params.resume_at))
 
         def update_detail() -> None:
             node.detail.update(shell.counts)
@@ -262,9 +292,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-sim-time", type=positive_float, default=None, metavar="S",
                         help="stop after the pose that reaches this simulated time")
     parser.add_argument("--duration-s", type=positive_float, default=None, help="stop after this wall time")
+    add_resume_arguments(parser)
 
 
 def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.Event) -> None:
     """What ``python -m services.place_recognizer`` runs once the session is open."""
     run(session, PlaceRecognizerNodeParams(follow_map=not args.no_follow_map, max_sim_time_s=args.max_sim_time,
-                                           duration_s=args.duration_s), robot=args.robot, stop=stop)
+                                           duration_s=args.duration_s, resume=args.resume,
+                                           resume_at=robot_at_from_args(args)),
+        robot=args.robot, stop=stop)

@@ -135,6 +135,15 @@ def run(session: zenoh.Session, params: RelaxerParams, *, robot: str = topics.DE
         def q_stats(_key: str, _p: QueryParams):
             return core.stats()
 
+        def q_scans(_key: str, p: QueryParams):
+            place = p.int("place", min_value=0) if "place" in p else None
+            max_offset = p.float("max_offset", min_value=0.0) if "max_offset" in p else None
+            latest = p.int("latest", min_value=0) if "latest" in p else None
+            try:
+                return core.scan_set(place_id=place, max_offset_m=max_offset, latest=latest)
+            except UnknownPlace as e:
+                raise QueryError(e.args[0]) from None
+
         # the map's events with history: a relaxer that starts late or restarts hears all of them
         node.subscribe(topics.places_confirmed(robot), PlaceConfirmed, on_confirmed, history=True)
         node.subscribe(topics.links_measured(robot), LinkMeasured, on_measured, history=True)
@@ -148,5 +157,6 @@ def run(session: zenoh.Session, params: RelaxerParams, *, robot: str = topics.DE
         node.queryable(topics.map_path(robot), q_path, params=("from", "to"))
         node.queryable(topics.map_grid(robot), q_grid, params=("resolution", "frame"))
         node.queryable(topics.map_stats(robot), q_stats)
+        node.queryable(topics.map_scans(robot), q_scans, params=("place", "max_offset", "latest"))
         node.spin(stop)
     store.close()

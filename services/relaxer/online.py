@@ -35,6 +35,8 @@ from messages.types import (
     PlaceConfirmed,
     PlacePosition,
     PlaceReply,
+    PlaceScan,
+    ScanSet,
 )
 from services.common.occupancy import GlobalGrid, SonarConeParams, compose
 from services.relaxer.compass import CompassNoise, CompassParams, CompassRelaxer, estimate_noise_reml
@@ -335,7 +337,7 @@ class OnlineMap:
         return MapGraph(version=self.version,
                         places=[MapPlace(place_id=i, x_m=x, y_m=y) for i, (x, y) in self.coordinates().items()],
                         links=list(self.links.values()), energy=self.energy,
-                        noise=_noise_msg(self.relaxer.noise), pinned=int(pinned))
+                        noise=_noise_msg(self.relaxer.noise), pinned=int(pinned), deleted=sorted(self.deleted))
 
     def place(self, place_id: int) -> PlaceReply:
         g = self.relaxer.graph
@@ -423,6 +425,29 @@ class OnlineMap:
         for x, y, s in placed:
             grid.integrate(x, y, s.heading, s.angles, s.ranges, beam_width_rad=s.beam_width, max_range_m=s.max_range)
         return grid
+
+    def scan_set(self, *, place_id: int | None = None, max_offset_m: float | None = None,
+                 latest: int | None = None) -> ScanSet:
+        """The stored scans, oldest first: of one place only, only those taken within ``max_offset_m``
+        of their place's centre, only the ``latest`` few of those (each filter when given).
+
+        Raises
+        ------
+        UnknownPlace
+            When ``place_id`` is given and the map does not hold it.
+        """
+        if place_id is not None and not self.relaxer.graph.has_place(place_id):
+            raise UnknownPlace(f"no place {place_id} in the map ({self.relaxer.graph.n_places} places)")
+        kept = [s for s in self.scans
+                if (place_id is None or s.place_id == place_id)
+                and (max_offset_m is None or math.hypot(s.off_x, s.off_y) <= max_offset_m)]
+        if latest is not None:
+            kept = kept[len(kept) - latest:] if latest > 0 else []
+        return ScanSet(version=self.version, scans=[
+            PlaceScan(stamp=s.stamp, place_id=s.place_id, offset_x_m=s.off_x, offset_y_m=s.off_y, dr_x_m=s.dr_x,
+                      dr_y_m=s.dr_y, heading_rad=s.heading, angles_rad=np.asarray(s.angles, float).tolist(),
+                      ranges_m=np.asarray(s.ranges, float).tolist(), beam_width_rad=s.beam_width,
+                      max_range_m=s.max_range) for s in kept])
 
     def stats(self) -> MapStats:
         ms = np.array(self.cycle_ms) if self.cycle_ms else np.zeros(1)

@@ -13,7 +13,9 @@ from services.runtime.errors import QueryError, QueryFailed
 from services.runtime.node import Node, TypedPublisher
 from services.runtime.params import QueryParams
 from services.runtime.service import (
+    finite_float,
     nonnegative_float,
+    nonnegative_int,
     positive_float,
     service_main,
     setup_logging,
@@ -23,6 +25,6 @@ from services.runtime.service import (
 __all__ = [
     "HUB_PORT", "AliveWatcher", "Node", "QueryError", "QueryFailed", "QueryParams", "TypedPublisher",
     "add_bus_arguments", "alive_services", "config_from_args", "deploy_file", "load_config",
-    "loopback_config", "nonnegative_float", "positive_float", "query", "service_main", "setup_logging",
-    "shutdown_event",
+    "loopback_config", "finite_float", "nonnegative_float", "nonnegative_int", "positive_float", "query",
+    "service_main", "setup_logging", "shutdown_event",
 ]

@@ -63,16 +63,24 @@ class Frame:
     sonar: SonarScan | None  # None when no scan is due
 
 
-def start(model: SimModel, rng: np.random.Generator) -> tuple[SimState, Frame]:
-    """The state and frame of tick 0: the robot at the world's start, with a first scan."""
-    pose = model.world.start
-    state = SimState(tick=0, pose=pose, travel_since_scan_m=0.0, time_since_scan_s=0.0, scans=0,
+def start(model: SimModel, rng: np.random.Generator, *, pose: Pose | None = None,
+          tick: int = 0) -> tuple[SimState, Frame]:
+    """The state and frame of the first tick, with a first scan.
+
+    By default tick 0 with the robot at the world's start; a run that continues a saved one starts
+    at its last ``tick`` with the robot at its last true ``pose``.
+    """
+    if tick < 0:
+        raise ValueError(f"the first tick must not be negative, got {tick}")
+    pose = model.world.start if pose is None else (float(pose[0]), float(pose[1]), float(pose[2]))
+    stamp = tick * model.params.dt_s
+    state = SimState(tick=tick, pose=pose, travel_since_scan_m=0.0, time_since_scan_s=0.0, scans=0,
                      collisions=0, path_length_m=0.0)
     compass = model.compass.measure(pose, rng)
-    scan = _scan(model, pose, state, 0.0, rng)
+    scan = _scan(model, pose, state, stamp, rng)
     return (_after_scan(state) if scan else state), Frame(
-        tick=0, truth=_truth(pose, 0, 0.0), compass=CompassReading(stamp=0.0, seq=0, heading_rad=compass),
-        odometry=None, sonar=scan)
+        tick=tick, truth=_truth(pose, tick, stamp),
+        compass=CompassReading(stamp=stamp, seq=tick, heading_rad=compass), odometry=None, sonar=scan)
 
 
 def step(state: SimState, command: tuple[float, float], model: SimModel,

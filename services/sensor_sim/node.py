@@ -14,7 +14,14 @@ import zenoh
 
 from messages import topics
 from messages.types import CompassReading, OdometryStep, SonarScan, TruthPose, VelocityCommand
-from services.runtime import AliveWatcher, Node, nonnegative_float, positive_float
+from services.runtime import (
+    AliveWatcher,
+    Node,
+    finite_float,
+    nonnegative_float,
+    nonnegative_int,
+    positive_float,
+)
 from services.sensor_sim import core
 from sim.world import World, WorldError, load_world
 
@@ -34,6 +41,8 @@ class SensorSimNodeParams:
     duration_s: float | None = None  # end the run after this wall time
     linger_s: float = 1.0  # wall time to stay on the bus after a bounded run, so the last frame is out
     wait_for: tuple[str, ...] = ()  # services that must be alive (liveliness) before the run starts
+    start_pose: tuple[float, float, float] | None = None  # true pose at the first tick (None: the world's start)
+    start_tick: int = 0  # the first tick (a run that continues a saved one starts at its last tick)
     sim: core.SensorSimParams = field(default_factory=core.SensorSimParams)  # the simulation itself
 
 
@@ -65,14 +74,15 @@ def run(session: zenoh.Session, world: World, params: SensorSimNodeParams, *,
 def _simulate(node: Node, model: core.SimModel, params: SensorSimNodeParams, cmds: _Commands,
               out: _Outputs, stop: threading.Event) -> core.SimState:
     """The clock: the start phase, then one tick per command (lockstep) or per wall period."""
-    rng = np.random.default_rng(params.seed)
+    # a continued run draws from a generator of its own: seeded by the seed and the tick it starts at
+    rng = np.random.default_rng(params.seed if params.start_tick == 0 else (params.seed, params.start_tick))
     dt = params.sim.dt_s
-    state, frame = core.start(model, rng)
+    state, frame = core.start(model, rng, pose=params.start_pose, tick=params.start_tick)
     node.announce()
     wall_end = time.monotonic() + params.duration_s if params.duration_s else math.inf
-    log.info("%s: world %s, seed %d, %s, waiting for the first command on %s", SERVICE, model.world.name,
-             params.seed, "lockstep" if params.lockstep else f"real-time factor {params.rtf:g}",
-             topics.cmd_velocity(node.robot))
+    log.info("%s: world %s, seed %d, %s, tick %d, waiting for the first command on %s", SERVICE,
+             model.world.name, params.seed, "lockstep" if params.lockstep else f"real-time factor {params.rtf:g}",
+             state.tick, topics.cmd_velocity(node.robot))
 
     # -- start: repeat tick 0 until a command arrives (and every awaited service is alive) ---------------
     watcher = AliveWatcher(node.session, node.robot) if params.wait_for else None
@@ -130,8 +140,8 @@ def _simulate(node: Node, model: core.SimModel, params: SensorSimNodeParams, cmd
     linger_end = time.monotonic() + params.linger_s
     while not stop.is_set() and (now := time.monotonic()) < linger_end:
         node.spin_once(linger_end - now)
-    log.info("%s: %d ticks, %.1f s simulated, %d collisions, %d lockstep timeouts", SERVICE, state.tick,
-             state.tick * dt, state.collisions, cmds.timeouts)
+    log.info("%s: %d ticks, %.1f s simulated, %d collisions, %d lockstep timeouts", SERVICE,
+             state.tick - params.start_tick, state.tick * dt, state.collisions, cmds.timeouts)
     return state
 
 
@@ -236,6 +246,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration-s", type=positive_float, default=None, help="end the run after this wall time")
     parser.add_argument("--wait-for", action="append", default=[], metavar="SERVICE",
                         help="do not start before SERVICE is alive on the bus (repeatable)")
+    parser.add_argument("--start-pose", type=finite_float, nargs=3, default=None, metavar=("X", "Y", "HEADING"),
+                        help="true pose at the first tick, metres and radians (default: the world's start)")
+    parser.add_argument("--start-tick", type=nonnegative_int, default=0, metavar="N",
+                        help="the first tick, to continue a saved run (default 0)")
 
 
 def params_from_args(args: argparse.Namespace) -> SensorSimNodeParams:
@@ -243,7 +257,9 @@ def params_from_args(args: argparse.Namespace) -> SensorSimNodeParams:
     return SensorSimNodeParams(seed=args.seed, lockstep=args.rtf is None,
                                rtf=args.rtf if args.rtf is not None else 1.0,
                                lockstep_timeout_s=args.lockstep_timeout_s, max_sim_time_s=args.max_sim_time,
-                               duration_s=args.duration_s, wait_for=tuple(args.wait_for), sim=sim)
+                               duration_s=args.duration_s, wait_for=tuple(args.wait_for),
+                               start_pose=tuple(args.start_pose) if args.start_pose else None,
+                               start_tick=args.start_tick, sim=sim)
 
 
 def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.Event) -> None:

@@ -19,6 +19,7 @@ from messages.types import (
     PathReply,
     PlaceConfirmed,
     PlaceReply,
+    ScanSet,
 )
 from services.runtime import AliveWatcher, QueryFailed, query
 from tests.conftest import wait_until
@@ -90,6 +91,7 @@ def test_updates_and_queries(relaxer):
     assert path.places[0] == 0 and path.places[-1] == 2 and path.length_m == pytest.approx(2.0)
     grid = query(session, topics.map_grid(ROBOT), "resolution=0.5", type_=OccupancyGrid)
     assert grid.resolution_m == 0.5
+    assert query(session, topics.map_scans(ROBOT), "place=1&max_offset=0.5", type_=ScanSet).scans == []
     st = query(session, topics.map_stats(ROBOT), type_=MapStats)
     assert st.places == 4 and st.links == 4 and st.updates == len(versions)
     bad = [
@@ -102,6 +104,9 @@ def test_updates_and_queries(relaxer):
         (topics.map_grid(ROBOT), "resolution=nan", "must be finite"),
         (topics.map_grid(ROBOT), "frame=sideways", "must be one of"),
         (topics.map_graph(ROBOT), "x=" + "y" * 5000, "unknown parameter"),
+        (topics.map_scans(ROBOT), "place=99", "no place 99"),
+        (topics.map_scans(ROBOT), "latest=-1", "must be at least 0"),
+        (topics.map_scans(ROBOT), "max_offset=far", "must be a number"),
     ]
     for key, params, expected in bad:
         with pytest.raises(QueryFailed, match=expected):

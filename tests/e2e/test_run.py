@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import signal
@@ -177,3 +178,148 @@ def test_killed_relaxer_is_restarted_and_loses_nothing(tmp_path):
     summary = _check_outputs(out)
     assert summary["restarts"]["relaxer"] == 1
     assert summary["links_lost"] == 0, summary
+
+
+def _map(out: Path) -> tuple[dict[int, tuple[float, float]], dict[tuple[int, int], dict]]:
+    """Places (id -> coordinates) and links (unordered pair -> link) of ``out/map.json``."""
+    m = json.loads((out / "map.json").read_text())
+    places = {p["id"]: (p["x"], p["y"]) for p in m["places"]}
+    return places, {(min(lk["from"], lk["to"]), max(lk["from"], lk["to"])): lk for lk in m["links"]}
+
+
+def _rigid_fit(a: list, b: list):
+    """The rotation and translation taking points ``a`` closest to ``b`` (least squares), and the residuals."""
+    A, B = np.asarray(a, float), np.asarray(b, float)
+    ca, cb = A.mean(axis=0), B.mean(axis=0)
+    u, _, vt = np.linalg.svd((A - ca).T @ (B - cb))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    rot = vt.T @ np.diag([1.0, d]) @ u.T
+
+    def fit(p):
+        return tuple(rot @ (np.asarray(p, float) - ca) + cb)
+
+    return fit, [math.dist(fit(p), q) for p, q in zip(a, b, strict=True)]
+
+
+def test_resume_continues_the_saved_run(tmp_path):
+    """Stop a run with Ctrl-C, continue it from its directory: no place or link of the first part is
+    lost, its coordinates move little, new places get new ids and join the old ones, simulated time
+    and the summary's counts go on, and both parts' recordings are readable."""
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", "--port", "0", "--headless", "--out",
+                             str(out), "--seed", "2", "--max-sim-time", "100000"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and _stored_places(out / "map.sqlite") < 12:
+            time.sleep(0.2)
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 0, err[-3000:]
+    first = _check_outputs(out)
+    saved = json.loads((out / "run.json").read_text())
+    places1, links1 = _map(out)
+    truth1 = (out / "truth.json").read_text()
+    assert saved["parts"] == 1 and saved["seed"] == 2 and saved["world"] == "orebro-office"
+    assert saved["sim_time_s"] == pytest.approx(first["sim_time_s"]) and len(places1) == first["places"] >= 12
+    assert saved["monitor"]["robot"]["tick"] == round(saved["monitor"]["robot"]["stamp"] * 10)
+    assert saved["monitor"]["max_place_id"] >= max(places1)
+    assert saved["monitor"]["robot"]["fix"]["place_id"] in places1  # where the recognizer last had it
+
+    # what contradicts the saved run is refused before anything starts, and the directory stays as it was
+    for extra, why in ((["--seed", "3"], "contradicts the saved run's seed 2"),
+                       (["--world", "manchester-corridors"], "contradicts the saved run's world"),
+                       (["--max-sim-time", "1"], "must go beyond it")):
+        done = subprocess.run([sys.executable, "-m", "services.cli", "run", "--port", "0", "--headless",
+                               "--resume", str(out), *extra], capture_output=True, text=True, timeout=60)
+        assert done.returncode == 1 and why in done.stderr, done.stderr[-2000:]
+    assert json.loads((out / "run.json").read_text()) == saved
+
+    end_s = first["sim_time_s"] + 90
+    done = subprocess.run([sys.executable, "-m", "services.cli", "run", "--port", "0", "--headless", "--resume",
+                           str(out), "--seed", "2", "--max-sim-time", f"{end_s:g}"], capture_output=True,
+                          text=True, timeout=300, start_new_session=True)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "continuing the run" in done.stderr
+    second = _check_outputs(out)
+    places2, links2 = _map(out)
+    # nothing of the first part is lost: every place, and every link between the same two places
+    assert set(places1) <= set(places2)
+    assert set(links1) <= set(links2)
+    # relaxation moves the first part's places a little, not away
+    moved = [math.dist(places1[i], places2[i]) for i in places1]
+    assert max(moved) < 1.0, sorted(moved)[-5:]
+    # new places, with ids beyond every id the first part used, joined to the first part's by links
+    new = set(places2) - set(places1)
+    assert len(new) >= 3 and min(new) > saved["monitor"]["max_place_id"]
+    across = [lk for (a, b), lk in links2.items() if (a in new) != (b in new)]
+    assert across, "no link joins the second part's places to the first's"
+    for lk in across:  # coordinates continue: a link across the parts agrees with the relaxed map
+        a, b = places2[lk["from"]], places2[lk["to"]]
+        assert abs(math.dist(a, b) - lk["d"]) < 0.5, lk
+    # simulated time, counts and truth go on
+    assert second["sim_time_s"] >= end_s - 1.0 > first["sim_time_s"]
+    assert second["links_lost"] == 0, second
+    assert second["links_measured"] >= len(links2) and second["parts"] == 2
+    assert second["wall_time_s"] > first["wall_time_s"]
+    truth2 = {p["id"]: (p["x"], p["y"]) for p in json.loads((out / "truth.json").read_text())["places"]}
+    assert all(truth2[p["id"]] == (p["x"], p["y"]) for p in json.loads(truth1)["places"])
+    # the robot went on from where it truly was: fitted on the first part's places, the map puts the
+    # second part's first places where they truly are, about as well as it puts the first part's
+    old_ids = sorted(places1)
+    fit, old_err = _rigid_fit([places2[i] for i in old_ids], [truth2[i] for i in old_ids])
+    new_err = [math.dist(fit(places2[i]), truth2[i]) for i in sorted(new)[:3]]
+    assert max(new_err) < max(old_err) + 0.75, (new_err, max(old_err))
+    run2 = json.loads((out / "run.json").read_text())
+    assert run2["parts"] == 2 and run2["recordings"] == ["recording.rrd", "recording-2.rrd"]
+    assert run2["recording_id"] == saved["recording_id"]
+    verify = subprocess.run([RERUN, "rrd", "verify", str(out / "recording.rrd"), str(out / "recording-2.rrd")],
+                            capture_output=True, text=True, timeout=120)
+    assert verify.returncode == 0, verify.stderr
+    for log in (out / "logs").iterdir():
+        assert "Traceback" not in log.read_text(), log.read_text()[-2000:]
+
+
+def test_resume_refuses_a_directory_without_a_run(tmp_path):
+    def resume(directory: Path, *extra: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "services.cli", "run", "--port", "0", "--headless", "--resume",
+                               str(directory), *extra], capture_output=True, text=True, timeout=60)
+
+    done = resume(tmp_path / "nowhere")
+    assert done.returncode == 1 and "cannot resume" in done.stderr and "is not a directory" in done.stderr
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    done = resume(empty)
+    assert done.returncode == 1 and "holds no saved run (run.json is missing" in done.stderr
+    assert list(empty.iterdir()) == []  # nothing started, nothing written
+    (empty / "run.json").write_text("{not json")
+    done = resume(empty)
+    assert done.returncode == 1 and "is not a run relaxmap saved" in done.stderr
+    done = resume(empty, "--out", str(tmp_path / "elsewhere"))
+    assert done.returncode == 1 and "a continued run writes into the directory" in done.stderr
+    # a run that cannot go on: its exploration is complete, or it confirmed no place
+    from services.launch.monitor import MonitorState, RobotState
+    from services.launch.resume import RUN_FORMAT, RunRecord, write_run_record
+
+    robot = RobotState(stamp=1.0, tick=10, truth=(0.0, 0.0, 0.0), dr_xy=(0.0, 0.0), dr_raw=(0.0, 0.0, 0.0), steps=10,
+                       path_length_m=0.1)
+    monitor = MonitorState(sim_time_s=1.0, max_place_id=0, places=[], deleted_places=[], measured=[], inferred=[],
+                           deleted_links=[], robot=robot)
+    record = RunRecord(format=RUN_FORMAT, world="orebro-office", world_ref="orebro-office", seed=0, parts=1,
+                       sim_time_s=1.0, wall_time_s=1.0, exploration_complete=False, places=3, recording_id="x",
+                       recordings=["recording.rrd"], monitor=monitor)
+    write_run_record(empty, record)
+    done = resume(empty)
+    assert done.returncode == 1 and "has no map store (map.sqlite)" in done.stderr
+    (empty / "map.sqlite").write_bytes(b"")
+    for change, why in (({"exploration_complete": True}, "completed its exploration"),
+                        ({"places": 0}, "confirmed no place"), ({"format": 99}, "has format 99")):
+        import msgspec
+
+        write_run_record(empty, msgspec.structs.replace(record, **change))
+        done = resume(empty)
+        assert done.returncode == 1 and why in done.stderr, done.stderr[-2000:]

@@ -240,3 +240,35 @@ def test_no_inferred_link_through_a_wall():
     assert PlaceConfirmedEvent(3, 0.5, 1.0) in out.events
     inferred = [(e.from_id, e.to_id) for e in _of(out.events, LinkInferredEvent)]
     assert (3, 0) not in inferred  # 0 is 1.1 m away, behind the wall
+
+
+def test_restore_continues_places_links_and_predicts_afresh():
+    """A continued run: confirmed places and traversed links come back, places are predicted anew
+    around them from their scans, ids go on above every id used, the robot plans from its place."""
+    places = {0: (-3.0, 0.0), 1: (-2.0, 0.0), 2: (-1.0, 0.0), 5: (0.0, 0.0)}
+    scans = {pid: (0.0, scan_at(x, y, 0.0, CORRIDOR)[0]) for pid, (x, y) in places.items()}
+    ex = Explorer()
+    events = ex.restore(places, [(0, 1, 1), (1, 2, 2), (2, 5, 1)], scans, at_place=5, robot_xy=(0.1, 0.0),
+                        pose=_pose(7.0, 3.0), scan=scans[5][1], next_place_id=9)
+    predicted = _of(events, PlacePredictedEvent)
+    # only east of the last place is open and free of places (the west end is a wall)
+    assert [(e.place_id, round(e.x_m, 6), round(e.y_m, 6), e.parent_id) for e in predicted] == [(9, 1.0, 0.0, 5)]
+    assert all(ex.places[i].confirmed for i in places)
+    assert ex.links[(1, 2)] == Link(1, 2, TRAVERSED, confidence_after_traversal(0.5, 0.5))
+    assert ex.links[(0, 1)].kind == TRAVERSED and ex.links[(0, 1)].confidence == 0.5
+    # the next step plans from place 5 towards the new prediction; dead reckoning moves the robot on
+    out = ex.step(100.0, _pose(7.2, 3.0))
+    assert ex.robot_xy == pytest.approx((0.3, 0.0))
+    assert ex.leg == (5, 9) and out.status.predicted == 1 and out.status.confirmed == 4
+    assert not _of(out.events, PlaceDeletedEvent)  # nothing of the saved map is pruned
+    with pytest.raises(ValueError, match="without places"):
+        ex.restore(places, [], {}, at_place=5, robot_xy=(0, 0), pose=_pose(0, 0))
+    with pytest.raises(ValueError, match="not among"):
+        Explorer().restore(places, [], {}, at_place=7, robot_xy=(0, 0), pose=_pose(0, 0))
+
+
+def test_restore_takes_ids_above_the_saved_places():
+    ex = Explorer()
+    events = ex.restore({3: (0.0, 0.0), 12: (1.0, 0.0)}, [(3, 12, 1)], {3: (0.0, scan_at(0, 0, 0, OPEN_ROOM)[0])},
+                        at_place=3, robot_xy=(0.0, 0.0), pose=_pose(0, 0), next_place_id=4)
+    assert min(e.place_id for e in _of(events, PlacePredictedEvent)) == 13

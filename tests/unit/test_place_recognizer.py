@@ -176,3 +176,31 @@ def test_a_place_confirmed_between_scans_dates_its_zero_offset_at_the_confirmati
     assert [off for _, off in offsets] == pytest.approx([0.05] * 5, abs=0.04)  # not the 0.2 m since the scan
     assert [(lk.from_id, lk.to_id) for lk in d.links] == [(i, i + 1) for i in range(5)]
     assert [lk.d_m for lk in d.links] == pytest.approx([1.0] * 5, abs=0.03)
+
+
+def test_a_restored_recognizer_continues_the_map(drive):
+    """Part two of a run: places, fused links and signatures restored from what the relaxer keeps
+    (centres, link measurements, scans placed at their offsets); the way back is recognised as in
+    one unbroken run, and the later traversals are fused into the restored links."""
+    from services.place_recognizer.grid import PlacedScan
+
+    rec = PlaceRecognizer()
+    scans = {}
+    for pid, (px, py) in drive.places.items():  # the scans taken within 0.4 m of each centre
+        scans[pid] = [PlacedScan.from_message(scan_at(px + dx, py, 0.0, WALLS)[0],
+                                              Pose2(x_m=dx, y_m=0.0, heading_rad=0.0))
+                      for dx in np.arange(-0.4, 0.41, 0.1)]
+    rec.restore(drive.places, drive.first_pass_links, scans, at_place=5, offset_xy=(0.0, 0.0), dr_xy=(6.5, 1.5))
+    assert rec.link(0, 1) == drive.first_pass_links[0]
+    assert rec.localization().hypotheses[0] == (5, pytest.approx(0.95))
+    again = _Drive(rec)
+    again.places = dict(drive.places)
+    again.prev, again.steps, again.path = (6.5, 1.5), 1000, 50.0
+    for k in range(1, 51):
+        again.visit(6.5 - 0.1 * k, 1.5, confirm_new=False)
+    seen = [p for i, p in enumerate(again.at) if p != NO_PLACE and (i == 0 or again.at[i - 1] != p)]
+    assert seen == [5, 4, 3, 2, 1, 0]
+    assert sorted((link.from_id, link.to_id) for link in again.links) == [(i, i + 1) for i in range(5)]
+    assert all(link.traversals == 2 and link.steps == 10 for link in again.links)
+    with pytest.raises(ValueError, match="without places"):
+        rec.restore(drive.places, [], {}, at_place=0, offset_xy=(0.0, 0.0), dr_xy=(0.0, 0.0))

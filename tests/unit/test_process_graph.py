@@ -22,10 +22,16 @@ def test_shipped_graph_is_sound():
         assert importlib.util.find_spec(s.module + ".__main__") is not None, s.module
         for t in (*s.inputs, *s.outputs):
             assert t in known
-    args = {s.name: expand_args(s, {"world": "w", "seed": "3", "out": "/o", "max_sim_time": "10", "viewer": ""})
-            for s in graph.services}
+    values = {"world": "w", "seed": "3", "out": "/o", "max_sim_time": "10", "viewer": "", "recording": "/o/r.rrd",
+              "recording_id": "id",
+              **{f"resume_{s.name}": [] for s in graph.services}}
+    args = {s.name: expand_args(s, values) for s in graph.services}
     assert args["relaxer"] == ["--store", "/o/map.sqlite", "--seed", "3"]
-    assert args["recorder"] == ["--out", "/o"]
+    assert args["recorder"] == ["--rrd", "/o/r.rrd", "--recording-id", "id"]
+    assert args["explorer"] == ["--seed", "3"]
+    values["resume_explorer"] = ["--resume", "--first-place-id", "7"]
+    assert expand_args(next(s for s in graph.services if s.name == "explorer"), values) == [
+        "--seed", "3", "--resume", "--first-place-id", "7"]
 
 
 def _graph(services) -> ProcessGraph:

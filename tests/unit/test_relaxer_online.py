@@ -70,6 +70,8 @@ def test_delete_place_and_link():
     assert out.tx.deleted_places == [2]
     assert set(m.coordinates()) == {0, 1, 3}
     assert set(m.links) == {(0, 1)}
+    m.on_place_deleted(9, 32.0)  # a place the map never held (a predicted one): its id is taken too
+    assert m.graph().deleted == [2, 9]
 
 
 def test_queries():
@@ -105,6 +107,25 @@ def test_grid_places_scans_at_relaxed_coordinates():
         assert cells[row, col] > 60
     with pytest.raises(ValueError, match="cells"):
         m.grid(0.001, "relaxed", max_cells=1000)
+
+
+def test_scan_set_filters_by_place_offset_and_recency():
+    m = OnlineMap()
+    square(m)
+    angles, ranges = np.zeros(4), np.full(4, 2.0)
+    for k, (pid, off) in enumerate([(0, 0.1), (1, 0.2), (1, 1.2), (2, 0.3), (1, 0.4)]):
+        m.add_scan(StoredScan(float(k), pid, off, 0.0, 10.0 + k, 0.0, 0.5, angles, ranges, 0.4, 6.5))
+    every = m.scan_set()
+    assert [s.stamp for s in every.scans] == [0.0, 1.0, 2.0, 3.0, 4.0] and every.version == m.version
+    assert every.scans[2].place_id == 1 and every.scans[2].offset_x_m == 1.2 and every.scans[2].dr_x_m == 12.0
+    assert every.scans[2].ranges_m == [2.0] * 4 and every.scans[2].heading_rad == 0.5
+    assert [s.stamp for s in m.scan_set(place_id=1).scans] == [1.0, 2.0, 4.0]
+    assert [s.stamp for s in m.scan_set(place_id=1, max_offset_m=0.5).scans] == [1.0, 4.0]
+    assert [s.stamp for s in m.scan_set(max_offset_m=0.25).scans] == [0.0, 1.0]
+    assert [s.stamp for s in m.scan_set(latest=2).scans] == [3.0, 4.0]
+    assert m.scan_set(latest=0).scans == []
+    with pytest.raises(UnknownPlace, match="no place 42"):
+        m.scan_set(place_id=42)
 
 
 def test_resume_from_store(tmp_path):

@@ -103,6 +103,45 @@ def test_dr_integrates_compass_and_raw_side_by_side():
     assert state.steps == 10
 
 
+def test_a_continued_run_goes_on_from_the_saved_pose_and_tick():
+    """Split one drive in two: the second part starts at the first's last tick, true pose and
+    dead-reckoned state, and carries on from there (stamps, seqs, poses, step record)."""
+    model = ss.SimModel(MANCHESTER)
+    driver = RouteDriver(MANCHESTER.routes["outer-loop"])
+    rng = np.random.default_rng(3)
+    state, frame = ss.start(model, rng)
+    filt, _ = dr.step(dr.DrState(), frame.compass)
+    for _ in range(150):
+        state, frame = ss.step(state, driver.command(state.pose), model, rng)
+        filt, _ = dr.step(filt, frame.compass)
+        filt, poses = dr.step(filt, frame.odometry)
+    last = poses[-1]
+    # the second part
+    rng2 = np.random.default_rng((3, state.tick))
+    state2, frame2 = ss.start(model, rng2, pose=state.pose, tick=state.tick)
+    assert frame2.tick == 150 and frame2.truth.stamp == pytest.approx(15.0) and frame2.compass.seq == 150
+    assert (frame2.truth.pose.x_m, frame2.truth.pose.y_m) == (state.pose[0], state.pose[1])
+    assert frame2.odometry is None and frame2.sonar is not None
+    raw = (last.raw.x_m, last.raw.y_m, last.raw.heading_rad)
+    filt2 = dr.continued_state((last.compass.x_m, last.compass.y_m), raw, steps=last.steps,
+                               path_length_m=last.path_length_m)
+    filt2, first = dr.step(filt2, frame2.compass)
+    assert (first[0].compass.x_m, first[0].compass.y_m) == (last.compass.x_m, last.compass.y_m)
+    assert first[0].steps == 150 and first[0].path_length_m == last.path_length_m
+    filt2, again = dr.step(filt2, frame2.compass)  # the start frame repeats until the first command
+    assert again[0].steps == 150
+    for _ in range(50):
+        state2, frame2 = ss.step(state2, driver.command(state2.pose), model, rng2)
+        filt2, _ = dr.step(filt2, frame2.compass)
+        filt2, poses2 = dr.step(filt2, frame2.odometry)
+    assert state2.tick == 200 and poses2[-1].stamp == pytest.approx(20.0) and poses2[-1].steps == 200
+    drift = math.hypot(poses2[-1].compass.x_m - state2.pose[0], poses2[-1].compass.y_m - state2.pose[1])
+    before = math.hypot(last.compass.x_m - state.pose[0], last.compass.y_m - state.pose[1])
+    assert drift < before + 0.5  # dead reckoning went on from its own frame, not from the origin
+    moved = math.hypot(state2.pose[0] - state.pose[0], state2.pose[1] - state.pose[1])
+    assert moved > 0.5 and poses2[-1].path_length_m > last.path_length_m + 0.5
+
+
 def test_dr_uses_the_mean_heading_of_a_step():
     state, out = _feed(dr.DrState(), [_cmp(0, 0.0), _cmp(1, math.pi / 2), _odo(0, 1.0, math.pi / 2)])
     assert (out[-1].compass.x_m, out[-1].compass.y_m) == pytest.approx((math.sqrt(0.5), math.sqrt(0.5)))
