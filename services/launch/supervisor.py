@@ -116,18 +116,12 @@ class Supervisor:
         if sv.proc is None:
             return None
         if sv.proc.poll() is None:
-            try:
-                os.killpg(sv.proc.pid, signal.SIGTERM)
-            except ProcessLookupError:
-                pass
+            _signal_group(sv.proc, signal.SIGTERM)
             try:
                 sv.proc.wait(timeout_s)
             except subprocess.TimeoutExpired:
                 self._on_event(f"{name} did not stop within {timeout_s:g} s: SIGKILL")
-                try:
-                    os.killpg(sv.proc.pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
+                _signal_group(sv.proc, signal.SIGKILL)
         code = sv.proc.wait()
         sv.exits.append(code)
         sv.proc = None
@@ -144,10 +138,7 @@ class Supervisor:
         for name in names:
             sv = self.services[name]
             if sv.proc is not None and sv.proc.poll() is None:
-                try:
-                    os.killpg(sv.proc.pid, signal.SIGTERM)
-                except ProcessLookupError:
-                    pass
+                _signal_group(sv.proc, signal.SIGTERM)
         deadline = self._clock() + timeout_s
         for name in names:
             sv = self.services[name]
@@ -157,13 +148,18 @@ class Supervisor:
                 codes[name] = sv.proc.wait(max(0.0, deadline - self._clock()))
             except subprocess.TimeoutExpired:
                 self._on_event(f"{name} did not stop within {timeout_s:g} s: SIGKILL")
-                try:
-                    os.killpg(sv.proc.pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
+                _signal_group(sv.proc, signal.SIGKILL)
                 codes[name] = sv.proc.wait()
         for sv in self.services.values():
             if sv.log_file is not None:
                 sv.log_file.close()
                 sv.log_file = None
         return codes
+
+
+def _signal_group(proc: subprocess.Popen, sig: int) -> None:
+    """Send ``sig`` to the process group of ``proc`` (a group that is already gone is no error)."""
+    try:
+        os.killpg(proc.pid, sig)
+    except ProcessLookupError:
+        pass

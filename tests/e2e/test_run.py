@@ -77,22 +77,29 @@ def _stored_places(store: Path) -> int:
         return 0
 
 
-def test_ctrl_c_stops_cleanly_and_writes_outputs(tmp_path):
-    out = tmp_path / "run"
+def _interrupt_once_mapped(out: Path, places: int, *extra: str) -> tuple[int, str]:
+    """Start a run, Ctrl-C it (SIGINT to its process group) once the store holds ``places`` places;
+    return its exit code and standard error."""
     proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", "--port", "0", "--headless", "--out",
-                             str(out), "--max-sim-time", "100000"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, start_new_session=True)
+                             str(out), "--max-sim-time", "100000", *extra], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
         deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and _stored_places(out / "map.sqlite") < 2:
-            time.sleep(0.5)
+        while time.monotonic() < deadline and _stored_places(out / "map.sqlite") < places:
+            time.sleep(0.2)
         os.killpg(proc.pid, signal.SIGINT)
         _, err = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
-    assert proc.returncode == 0, err[-3000:]
+    return proc.returncode, err
+
+
+def test_ctrl_c_stops_cleanly_and_writes_outputs(tmp_path):
+    out = tmp_path / "run"
+    code, err = _interrupt_once_mapped(out, 2)
+    assert code == 0, err[-3000:]
     assert "stopped by signal" in err
     summary = _check_outputs(out)
     assert summary["exploration_complete"] is False and summary["places"] >= 1
@@ -206,20 +213,8 @@ def test_resume_continues_the_saved_run(tmp_path):
     lost, its coordinates move little, new places get new ids and join the old ones, simulated time
     and the summary's counts go on, and both parts' recordings are readable."""
     out = tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", "--port", "0", "--headless", "--out",
-                             str(out), "--seed", "2", "--max-sim-time", "100000"], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
-    try:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and _stored_places(out / "map.sqlite") < 12:
-            time.sleep(0.2)
-        os.killpg(proc.pid, signal.SIGINT)
-        _, err = proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-    assert proc.returncode == 0, err[-3000:]
+    code, err = _interrupt_once_mapped(out, 12, "--seed", "2")
+    assert code == 0, err[-3000:]
     first = _check_outputs(out)
     saved = json.loads((out / "run.json").read_text())
     places1, links1 = _map(out)
