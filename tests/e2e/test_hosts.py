@@ -170,3 +170,62 @@ def test_relaxer_on_another_host_makes_the_same_map(hosts, processes, tmp_path):
     assert links == ref_links, why
     worst = max(max(abs(places[i][0] - ref_places[i][0]), abs(places[i][1] - ref_places[i][1])) for i in places)
     assert worst <= XY_TOLERANCE_M, f"places differ by up to {worst:.3f} m"
+
+
+@pytest.fixture
+def secure_hosts(tmp_path, processes):
+    """`relaxmap certs`, then a router with deploy/router-secure.json5 on loopback, each host in its own
+    folder holding its secrets/. Yields (folder of each identity's host, endpoint)."""
+    from services.runtime.certs import write_certs
+
+    folders = write_certs(tmp_path / "ca", ["relaxer", "robot"])
+    homes = {}
+    for name, folder in folders.items():
+        homes[name] = tmp_path / f"{name}-host"
+        shutil.copytree(folder, homes[name] / "secrets")
+    from tests.conftest import free_port
+
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    log = tmp_path / "router.log"
+    with log.open("wb") as f:
+        router = processes.start([sys.executable, "-m", "services.cli", "router", "--config",
+                                  str(REPO / "deploy" / "router-secure.json5"), "--listen", endpoint],
+                                 cwd=homes["router"], stdout=f, stderr=subprocess.STDOUT)
+    _wait_for_line(log, "up (", router, 30)
+    yield homes, endpoint
+    assert processes.stop(router) == 0
+
+
+def _secure_run(processes, home: Path, endpoint: str, out: str, *args: str) -> tuple[subprocess.Popen, Path]:
+    log = home / f"{out}.log"
+    with log.open("wb") as f:
+        proc = processes.start([sys.executable, "-m", "services.cli", "run", "--config",
+                                str(REPO / "deploy" / "client-secure.json5"), "--connect", endpoint,
+                                "--out", out, "--seed", str(SEED), "--headless", *args],
+                               cwd=home, stdout=f, stderr=subprocess.STDOUT)
+    return proc, log
+
+
+def test_tls_and_access_control_let_the_whole_run_through(secure_hosts, processes):
+    """Every key the services use passes deploy/router-secure.json5 when the relaxer shows its certificate."""
+    homes, endpoint = secure_hosts
+    relaxer, relaxer_log = _secure_run(processes, homes["relaxer"], endpoint, "relaxer-out", "--only", "relaxer")
+    robot, robot_log = _secure_run(processes, homes["robot"], endpoint, "out", "--skip", "relaxer", "--max-sim-time", "30",
+                                   "--start-timeout-s", "120")
+    assert robot.wait(300) == 0, robot_log.read_text()[-3000:]
+    assert processes.stop(relaxer) == 0, relaxer_log.read_text()[-3000:]
+    summary = json.loads((homes["robot"] / "out" / "summary.json").read_text())
+    assert summary["places"] >= 5 and summary["links_lost"] == 0, summary
+    assert (homes["robot"] / "out" / "grid.png").is_file()
+
+
+def test_a_relaxer_without_the_relaxer_certificate_is_not_heard(secure_hosts, processes):
+    """The relaxer started with the robot's certificate: alive, but its map never reaches the run."""
+    homes, endpoint = secure_hosts
+    relaxer, relaxer_log = _secure_run(processes, homes["robot"], endpoint, "relaxer-out", "--only", "relaxer")
+    robot, robot_log = _secure_run(processes, homes["robot"], endpoint, "out", "--skip", "relaxer", "--max-sim-time", "10",
+                                   "--start-timeout-s", "120", "--settle-timeout-s", "3")
+    assert robot.wait(300) == 1, robot_log.read_text()[-3000:]
+    assert processes.stop(relaxer) == 0, relaxer_log.read_text()[-3000:]
+    text = robot_log.read_text()
+    assert "all 6 services alive" in text and "could not get the final map from the relaxer" in text, text[-3000:]
