@@ -185,18 +185,28 @@ def _wait_for_relaxer(session: zenoh.Session, robot: str, monitor: RunMonitor, *
                       quiet_s: float = 1.0) -> bool:
     """Wait until the map events have stopped coming (``quiet_s``) and the relaxer holds every place and
     link they named: when the simulation stops, the last events are still on their way, and the relaxer
-    takes them in one at a time. Then the written map is the same whatever the timing. False on timeout."""
+    takes them in one at a time. Then the written map is the same whatever the timing. False on timeout.
+
+    Raises
+    ------
+    RunError
+        When the relaxer never answered ``map/stats`` (gone, or not allowed to serve the map).
+    """
     deadline = time.monotonic() + timeout_s
+    answered = False
     while True:
         places, links = monitor.map_counts()
         try:
-            stats = query(session, topics.map_stats(robot), type_=MapStats, timeout_s=max(timeout_s, 1.0))
+            stats = query(session, topics.map_stats(robot), type_=MapStats,
+                          timeout_s=min(max(deadline - time.monotonic(), 1.0), 10.0))
+            answered = True
         except QueryFailed as e:
-            log.warning("map/stats: %s", e)
+            if time.monotonic() > deadline and not answered:
+                raise RunError(f"the relaxer does not answer {topics.map_stats(robot)}: {e}") from e
             stats = None
         if stats is not None and stats.places >= places and stats.links >= links and monitor.quiet_s() >= quiet_s:
             return True
-        if time.monotonic() > deadline:
+        if time.monotonic() > deadline and answered:
             return False
         time.sleep(0.1)
 
