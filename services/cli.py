@@ -11,6 +11,8 @@ import sys
 # and keeps its heavy imports inside ``main`` so that ``relaxmap --help`` stays fast.
 COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("services.launch.run_cli", "explore a world with every service and write the map"),
+    "router": ("services.router_cli", "run a zenoh router that the services of other hosts connect to"),
+    "certs": ("services.certs_cli", "write a CA and certificates for the TLS configurations"),
     "schema": ("services.schema_cli", "print the JSON Schema of every bus message"),
     "query": ("services.query_cli", "ask a running system (prints JSON)"),
     "bench": ("services.bench", "run the benchmarks (tables, never pass/fail)"),

@@ -43,7 +43,8 @@ class Processes:
     def start(self, args: list[str], **kwargs) -> subprocess.Popen:
         kwargs.setdefault("stdout", subprocess.PIPE)
         kwargs.setdefault("stderr", subprocess.STDOUT)
-        proc = subprocess.Popen(args, start_new_session=True, cwd=REPO, **kwargs)
+        kwargs.setdefault("cwd", REPO)
+        proc = subprocess.Popen(args, start_new_session=True, **kwargs)
         self.procs.append(proc)
         return proc
 

@@ -109,6 +109,7 @@ class RunMonitor:
         self.inferred: set[tuple[int, int]] = set()
         self.deleted_links: set[tuple[int, int]] = set()
         self.decode_errors = 0
+        self._last_event = time.monotonic()  # when the last map event (place or link) was heard
         handlers = {
             topics.truth_pose(robot): (TruthPose, self._on_truth),
             topics.map_update(robot): (MapUpdate, self._on_update),
@@ -177,20 +178,24 @@ class RunMonitor:
         self.status = msg
 
     def _on_confirmed(self, msg: PlaceConfirmed) -> None:
+        self._last_event = time.monotonic()
         self.confirmed.setdefault(msg.place_id, msg)
         self.max_place_id = max(self.max_place_id, msg.place_id)
 
     def _on_place_deleted(self, msg: PlaceDeleted) -> None:
+        self._last_event = time.monotonic()
         self.deleted_places.add(msg.place_id)
         self.max_place_id = max(self.max_place_id, msg.place_id)
 
     def _on_measured(self, msg: LinkMeasured) -> None:
+        self._last_event = time.monotonic()
         self.measured.add(_pair(msg.from_id, msg.to_id))
 
     def _on_inferred(self, msg: LinkInferred) -> None:
         self.inferred.add(_pair(msg.from_id, msg.to_id))
 
     def _on_link_deleted(self, msg: LinkDeleted) -> None:
+        self._last_event = time.monotonic()
         self.inferred.discard(_pair(msg.from_id, msg.to_id))
         self.deleted_links.add(_pair(msg.from_id, msg.to_id))
 
@@ -204,6 +209,18 @@ class RunMonitor:
                     "energy": up.energy if up else float("nan"), "version": up.version if up else 0,
                     "rtf": self.sim_time_s / wall if wall > 0 else 0.0,
                     "complete": bool(self.status and self.status.complete)}
+
+    def map_counts(self) -> tuple[int, int]:
+        """Places confirmed and links measured, less those deleted: what the relaxer's map should hold."""
+        with self._lock:
+            places = set(self.confirmed) - self.deleted_places
+            links = {p for p in self.measured - self.deleted_links if p[0] in places and p[1] in places}
+            return len(places), len(links)
+
+    def quiet_s(self) -> float:
+        """Seconds since the last map event was heard."""
+        with self._lock:
+            return time.monotonic() - self._last_event
 
     def place_truth(self) -> dict[int, tuple[float, float]]:
         """True position of every confirmed place that was not deleted (earlier parts' included)."""

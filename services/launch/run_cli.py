@@ -26,7 +26,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="stop after this many simulated seconds if exploration has not ended")
     parser.add_argument("--graph", help="process graph file (default: deploy/graph.json)")
     parser.add_argument("--port", type=int, default=7447,
-                        help="loopback port of the run's hub (0: any free port)")
+                        help="loopback port of the run's hub (0: any free port); not used with --connect/--config")
+    parser.add_argument("--settle-timeout-s", type=float, default=30.0,
+                        help="at the end, how long to wait for the relaxer to take in the last places and links")
+    hosts = parser.add_argument_group("several hosts (see README: Several hosts)")
+    hosts.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                       help="reach the other hosts through this router, e.g. tcp/10.0.0.1:7447 (repeatable): "
+                            "no loopback hub, every service connects there")
+    hosts.add_argument("--config", help="zenoh JSON5 configuration of the launcher and of every service it starts "
+                                        "(default with --connect: deploy/client.json5; "
+                                        "deploy/client-secure.json5 for TLS)")
+    part = hosts.add_mutually_exclusive_group()
+    part.add_argument("--only", action="append", default=[], metavar="SERVICE",
+                      help="start only this service of the graph (repeatable) and serve it until Ctrl-C; "
+                           "the host that runs the rest watches the run and writes the outputs")
+    part.add_argument("--skip", action="append", default=[], metavar="SERVICE",
+                      help="start every service but this one (repeatable): it runs on another host "
+                           "(`--only`), and the run waits for it to be alive there")
     parser.add_argument("--start-timeout-s", type=float, default=None,
                         help=f"how long the services may take to come alive (default {START_TIMEOUT_S:g} s; "
                              f"{RESUME_START_TIMEOUT_S:g} s with --resume, as the relaxer first re-integrates "

@@ -15,7 +15,8 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from messages import topics
-from services.launch.graph import GraphError, load_graph
+from messages.types import MapStats
+from services.launch.graph import GraphError, ProcessGraph, load_graph
 from services.launch.monitor import RunMonitor
 from services.launch.resume import (
     RUN_FORMAT,
@@ -27,7 +28,15 @@ from services.launch.resume import (
 )
 from services.launch.run_cli import DEFAULT_OUT, DEFAULT_WORLD, RESUME_START_TIMEOUT_S, START_TIMEOUT_S
 from services.launch.supervisor import Supervisor
-from services.runtime import AliveWatcher, QueryFailed, deploy_file, loopback_config, shutdown_event
+from services.runtime import (
+    AliveWatcher,
+    QueryFailed,
+    deploy_file,
+    load_config,
+    loopback_config,
+    query,
+    shutdown_event,
+)
 from services.runtime.procs import free_port
 
 log = logging.getLogger("relaxmap.run")
@@ -131,6 +140,52 @@ def resume_values(plan: RunPlan) -> dict[str, list[str]]:
     return values
 
 
+REMOTE_CONFIG = "client.json5"  # default zenoh config of a run that reaches the other hosts through a router
+
+
+def open_bus(args: argparse.Namespace, robot: str) -> tuple[zenoh.Session, list[str], str]:
+    """The launcher's session, the bus flags of the services it starts, and where the bus is (in words).
+
+    Without ``--connect`` and ``--config`` the launcher is the loopback hub every local peer connects to;
+    with them, the launcher and its services reach the other hosts through a router.
+    """
+    if not args.connect and not args.config:
+        endpoint = f"tcp/127.0.0.1:{args.port or free_port()}"
+        try:
+            session = zenoh.open(loopback_config(listen=[endpoint]))
+        except zenoh.ZError as e:
+            raise RunError(f"cannot listen on {endpoint} ({e}); is another run using it? Try --port 0") from e
+        return session, ["--connect", endpoint, "--listen", "tcp/127.0.0.1:0", "--robot", robot], endpoint
+    path = Path(args.config).resolve() if args.config else deploy_file(REMOTE_CONFIG)
+    try:
+        conf = load_config(path, connect=args.connect or None)
+    except ValueError as e:
+        raise RunError(str(e)) from e
+    where = ", ".join(args.connect) or f"the endpoints of {path}"
+    try:
+        session = zenoh.open(conf)
+    except zenoh.ZError as e:
+        raise RunError(f"cannot reach {where} with {path} ({e}); is the router up?") from e
+    flags = ["--config", str(path), *(a for e in args.connect for a in ("--connect", e)), "--robot", robot]
+    return session, flags, where
+
+
+def local_part(graph: ProcessGraph, *, only: list[str], skip: list[str], remote: bool) -> ProcessGraph:
+    """The services of ``graph`` that this host starts (``--only`` / ``--skip``)."""
+    if not (only or skip):
+        return graph
+    if not remote:
+        raise RunError("--only and --skip split the graph across hosts: name the router with --connect "
+                       "(or a zenoh config with --config)")
+    unknown = sorted((set(only) | set(skip)) - set(graph.names()))
+    if unknown:
+        raise RunError(f"no service {', '.join(unknown)} in the graph ({', '.join(graph.names())})")
+    keep = [s for s in graph.services if (s.name in only if only else s.name not in skip)]
+    if not keep:
+        raise RunError("--skip leaves no service to start on this host")
+    return ProcessGraph(services=keep)
+
+
 def run(args: argparse.Namespace) -> int:
     console = Console(stderr=True, log_path=False)
     plan = plan_run(args)
@@ -140,6 +195,7 @@ def run(args: argparse.Namespace) -> int:
         graph = load_graph(args.graph or deploy_file("graph.json"))
     except GraphError as e:
         raise RunError(str(e)) from e
+    local = local_part(graph, only=args.only, skip=args.skip, remote=bool(args.connect or args.config))
     world = plan.world_ref
     saved = plan.saved
     recording_id = saved.recording_id if saved is not None else str(uuid.uuid4())
@@ -148,45 +204,44 @@ def run(args: argparse.Namespace) -> int:
         console.log(f"continuing the run in {out} (part {plan.part}) at {saved.sim_time_s:.1f} simulated s: "
                     f"world {saved.world}, seed {saved.seed}, {saved.places} places")
     robot = topics.DEFAULT_ROBOT
-    port = args.port or free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
-    try:
-        session = zenoh.open(loopback_config(listen=[endpoint]))
-    except zenoh.ZError as e:
-        raise RunError(f"cannot listen on {endpoint} ({e}); is another run using it? Try --port 0") from e
+    session, common, where = open_bus(args, robot)
     stop = shutdown_event()
     values = {"world": world, "seed": str(plan.seed), "out": str(out), "max_sim_time": f"{args.max_sim_time:g}",
               "viewer": "--viewer" if args.viewer else "", "recording": str(out / recordings[-1]),
               "recording_id": recording_id, **resume_values(plan)}
-    common = ["--connect", endpoint, "--listen", "tcp/127.0.0.1:0", "--robot", robot]
-    supervisor = Supervisor(graph, common_args=common, values=values, log_dir=out / "logs", on_event=console.log)
+    supervisor = Supervisor(local, common_args=common, values=values, log_dir=out / "logs", on_event=console.log)
+    start_timeout_s = args.start_timeout_s
+    if start_timeout_s is None:
+        start_timeout_s = START_TIMEOUT_S if saved is None else RESUME_START_TIMEOUT_S
+    watcher = AliveWatcher(session, robot, on_change=lambda name, up: None if up else log.info("%s left", name))
+    if args.only:
+        try:
+            supervisor.start()
+            _wait_alive(start_timeout_s, local.names(), local.names(), supervisor, watcher, stop, out)
+            console.log(f"serving {', '.join(local.names())} on {where} (Ctrl-C stops)")
+            console.log(f"serving ends: {_serve(supervisor, stop)}")
+        finally:
+            codes = supervisor.stop()
+            watcher.close()
+            session.close()
+        _report_codes(codes, console)
+        return 0
     monitor = RunMonitor(session, robot)
     if saved is not None:
         monitor.restore(saved.monitor)
-    watcher = AliveWatcher(session, robot, on_change=lambda name, up: None if up else log.info("%s left", name))
     wall0 = time.monotonic()
     try:
         supervisor.start()
-        start_timeout_s = args.start_timeout_s
-        if start_timeout_s is None:
-            start_timeout_s = START_TIMEOUT_S if saved is None else RESUME_START_TIMEOUT_S
-        deadline = time.monotonic() + start_timeout_s
-        while not watcher.wait_alive(graph.names(), 0.2):
-            supervisor.poll()
-            if supervisor.failure:
-                raise RunError(supervisor.failure)
-            missing = ", ".join(sorted(set(graph.names()) - watcher.alive))
-            if stop.is_set():
-                raise RunError(f"stopped by signal before every service was alive (missing: {missing})")
-            if time.monotonic() > deadline:
-                raise RunError(f"not alive after {start_timeout_s:g} s: {missing} (logs in {out / 'logs'})")
-        console.log(f"all {len(graph.services)} services alive on {endpoint}")
+        _wait_alive(start_timeout_s, graph.names(), local.names(), supervisor, watcher, stop, out)
+        console.log(f"all {len(graph.services)} services alive on {where}")
         reason = _watch(args, supervisor, monitor, stop, console)
         console.log(f"run ends: {reason}")
         # the robot stops first, so that the map, the robot's state and run.json tell of the same moment
         if "sensor_sim" in supervisor.services:
             supervisor.halt("sensor_sim")
-        _settle(monitor)
+        if not _wait_for_relaxer(session, robot, monitor, timeout_s=args.settle_timeout_s):
+            console.log(f"the relaxer's map still lacks places or links after {args.settle_timeout_s:g} s: "
+                        "written as it is (see links_lost)")
         from services.launch.outputs import write_outputs
 
         wall_before = saved.wall_time_s if saved is not None else 0.0
@@ -206,23 +261,77 @@ def run(args: argparse.Namespace) -> int:
         watcher.close()
         monitor.close()
         session.close()
-    bad = {k: v for k, v in codes.items() if v not in (0, -15)}
-    if bad:
-        console.log(f"services that did not stop cleanly: {bad}")
+    _report_codes(codes, console)
     console.print_json(json.dumps(summary))
     return 0
 
 
-def _settle(monitor: RunMonitor, *, quiet_s: float = 0.5, max_s: float = 5.0) -> None:
-    """Wait until no map update came for ``quiet_s`` (at most ``max_s``): the last events are in."""
-    end = time.monotonic() + max_s
-    last = monitor.progress()
-    quiet_since = time.monotonic()
-    while (now := time.monotonic()) < end and now - quiet_since < quiet_s:
-        time.sleep(0.05)
-        p = monitor.progress()
-        if p["version"] != last["version"]:
-            last, quiet_since = p, time.monotonic()
+def _report_codes(codes: dict[str, int], console: Console) -> None:
+    bad = {k: v for k, v in codes.items() if v not in (0, -15)}
+    if bad:
+        console.log(f"services that did not stop cleanly: {bad}")
+
+
+def _wait_alive(timeout_s: float, names: list[str], local: list[str], supervisor: Supervisor,
+                watcher: AliveWatcher, stop, out: Path) -> None:
+    """Wait until every one of ``names`` is alive (those not in ``local`` run on other hosts)."""
+    deadline = time.monotonic() + timeout_s
+    while not watcher.wait_alive(names, 0.2):
+        supervisor.poll()
+        if supervisor.failure:
+            raise RunError(supervisor.failure)
+        missing = sorted(set(names) - watcher.alive)
+        here = [n for n in missing if n in local]
+        text = "; ".join(part for part in (
+            ", ".join(here) + (f" (logs in {out / 'logs'})" if here else ""),
+            ", ".join(n for n in missing if n not in local) + " from other hosts (is their run up?)"
+            if len(here) < len(missing) else "") if part)
+        if stop.is_set():
+            raise RunError(f"stopped by signal before every service was alive (missing: {text})")
+        if time.monotonic() > deadline:
+            raise RunError(f"not alive after {timeout_s:g} s: {text}")
+
+
+def _wait_for_relaxer(session: zenoh.Session, robot: str, monitor: RunMonitor, *, timeout_s: float,
+                      quiet_s: float = 1.0) -> bool:
+    """Wait until the map events have stopped coming (``quiet_s``) and the relaxer holds every place and
+    link they named: when the simulation stops, the last events are still on their way, and the relaxer
+    takes them in one at a time. Then the written map is the same whatever the timing. False on timeout.
+
+    Raises
+    ------
+    RunError
+        When the relaxer never answered ``map/stats`` (gone, or not allowed to serve the map).
+    """
+    deadline = time.monotonic() + timeout_s
+    answered = False
+    while True:
+        places, links = monitor.map_counts()
+        try:
+            stats = query(session, topics.map_stats(robot), type_=MapStats,
+                          timeout_s=min(max(deadline - time.monotonic(), 1.0), 10.0))
+            answered = True
+        except QueryFailed as e:
+            if time.monotonic() > deadline and not answered:
+                raise RunError(f"the relaxer does not answer {topics.map_stats(robot)}: {e}") from e
+            stats = None
+        if stats is not None and stats.places >= places and stats.links >= links and monitor.quiet_s() >= quiet_s:
+            return True
+        if time.monotonic() > deadline and answered:
+            return False
+        time.sleep(0.1)
+
+
+def _serve(supervisor: Supervisor, stop) -> str:
+    """Keep this host's services running (restarts by policy) until Ctrl-C or until they all ended."""
+    while not stop.is_set():
+        supervisor.poll()
+        if supervisor.failure:
+            raise RunError(supervisor.failure)
+        if not supervisor.pids() and all(sv.restart_at is None for sv in supervisor.services.values()):
+            return "every service of this host ended"
+        time.sleep(0.2)
+    return "stopped by signal"
 
 
 def _watch(args: argparse.Namespace, supervisor: Supervisor, monitor: RunMonitor, stop, console: Console) -> str:

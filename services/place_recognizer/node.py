@@ -278,8 +278,10 @@ def run(session: zenoh.Session, params: PlaceRecognizerNodeParams = PlaceRecogni
 
         node.spin(stop, tick=on_tick, period_s=0.1)
         update_detail()
-        log.info("%s: %d scans, %d localised, %d places, %d links", SERVICE, shell.counts["scans"],
-                 shell.counts["localised"], shell.counts["places"], shell.counts["links"])
+        log.info("%s: %d scans, %d localised, %d places, %d links; %d order timeouts, %d late events, "
+                 "%d unpaired scans, %d dropped scans", SERVICE, shell.counts["scans"], shell.counts["localised"],
+                 shell.counts["places"], shell.counts["links"], shell.counts["order_timeouts"],
+                 shell.counts["late_events"], shell.counts["unpaired_scans"], shell.counts["dropped_scans"])
     return shell
 
 

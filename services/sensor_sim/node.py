@@ -87,9 +87,16 @@ def _simulate(node: Node, model: core.SimModel, params: SensorSimNodeParams, cmd
     # -- start: repeat tick 0 until a command arrives (and every awaited service is alive) ---------------
     watcher = AliveWatcher(node.session, node.robot) if params.wait_for else None
 
-    def ready() -> bool:
-        return cmds.started and (watcher is None or set(params.wait_for) <= watcher.alive)
+    def all_alive() -> bool:
+        return watcher is None or set(params.wait_for) <= watcher.alive
 
+    def ready() -> bool:
+        return cmds.started and all_alive()
+
+    # tick 0 goes out once every awaited service is alive, i.e. subscribed: what one of them answers to
+    # it (the recognizer's localization of the first scan) then reaches the others (the explorer)
+    while not stop.is_set() and time.monotonic() < wall_end and not all_alive():
+        node.spin_once(0.05)
     while not stop.is_set() and time.monotonic() < wall_end and not ready():
         out.publish(frame)
         deadline = time.monotonic() + params.start_repeat_s
