@@ -15,6 +15,7 @@ from messages import topics
 from messages.types import CompassReading, DeadReckonedPose, OdometryStep
 from services.dead_reckoning import core
 from services.runtime import Node, positive_float
+from services.runtime.checkpoint import Checkpoint
 
 SERVICE = "dead_reckoning"
 log = logging.getLogger("relaxmap.dead_reckoning")
@@ -24,6 +25,7 @@ log = logging.getLogger("relaxmap.dead_reckoning")
 class DeadReckoningNodeParams:
     max_sim_time_s: float | None = None  # stop after integrating a step stamped at or past this time
     duration_s: float | None = None  # stop after this wall time
+    state_path: str | None = None  # checkpoint: saved with every pose, resumed from after a restart
     filter_params: core.DeadReckoningParams = field(default_factory=core.DeadReckoningParams)  # the filter
 
 
@@ -31,7 +33,11 @@ def run(session: zenoh.Session, params: DeadReckoningNodeParams = DeadReckoningN
         robot: str = topics.DEFAULT_ROBOT, stop: threading.Event | None = None) -> core.DrState:
     """Integrate the sensor streams until ``stop`` or a limit; return the final filter state."""
     stop = stop or threading.Event()
-    state = core.DrState()
+    ckpt = Checkpoint(params.state_path, core.DrState) if params.state_path else None
+    state = (ckpt.load() if ckpt else None) or core.DrState()
+    if state.steps:
+        log.info("%s: resumed after %d steps (stamp %.1f s) from %s", SERVICE, state.steps, state.last_stamp,
+                 params.state_path)
     with Node(session, SERVICE, robot=robot) as node:
         pub = node.publisher(topics.dr_pose(robot), DeadReckonedPose)
         node.detail.update(steps=0, path_length_m=0.0, last_stamp_s=0.0, gaps=0, gaps_odometry=0,
@@ -42,6 +48,8 @@ def run(session: zenoh.Session, params: DeadReckoningNodeParams = DeadReckoningN
             state, poses = core.step(state, msg, params.filter_params)
             if not poses:
                 return
+            if ckpt is not None:  # before publishing: a pose out is a pose the checkpoint knows
+                ckpt.save(state)
             _update_detail(node, state)  # first: whoever has seen a pose finds health that far
             for pose in poses:
                 pub.put(pose)
@@ -87,9 +95,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-sim-time", type=positive_float, default=None, metavar="S",
                         help="stop after integrating the step that reaches this simulated time")
     parser.add_argument("--duration-s", type=positive_float, default=None, help="stop after this wall time")
+    parser.add_argument("--state", metavar="PATH", default=None,
+                        help="checkpoint file: saved with every pose; a restarted process resumes from it")
 
 
 def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.Event) -> None:
     """What ``python -m services.dead_reckoning`` runs once the session is open."""
-    run(session, DeadReckoningNodeParams(max_sim_time_s=args.max_sim_time, duration_s=args.duration_s),
+    run(session, DeadReckoningNodeParams(max_sim_time_s=args.max_sim_time, duration_s=args.duration_s,
+                                         state_path=args.state),
         robot=args.robot, stop=stop)

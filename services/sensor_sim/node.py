@@ -9,17 +9,29 @@ import threading
 import time
 from dataclasses import dataclass, field
 
+import msgspec
 import numpy as np
 import zenoh
 
 from messages import topics
 from messages.types import CompassReading, OdometryStep, SonarScan, TruthPose, VelocityCommand
 from services.runtime import AliveWatcher, Node, nonnegative_float, positive_float
+from services.runtime.checkpoint import Checkpoint, CheckpointError
 from services.sensor_sim import core
 from sim.world import World, WorldError, load_world
 
 SERVICE = "sensor_sim"
 log = logging.getLogger("relaxmap.sensor_sim")
+
+
+class SimCheckpoint(msgspec.Struct, frozen=True):
+    """What a restarted simulator needs to go on: the state, the frame of that tick, the generator."""
+
+    world: str  # the world's name: a checkpoint of another world is refused
+    seed: int
+    state: core.SimState
+    frame: core.Frame  # published again on resumption (its command is the one awaited)
+    rng_state: bytes  # numpy's bit generator state, JSON (its integers exceed 64 bits)
 
 
 @dataclass(frozen=True)
@@ -34,6 +46,7 @@ class SensorSimNodeParams:
     duration_s: float | None = None  # end the run after this wall time
     linger_s: float = 1.0  # wall time to stay on the bus after a bounded run, so the last frame is out
     wait_for: tuple[str, ...] = ()  # services that must be alive (liveliness) before the run starts
+    state_path: str | None = None  # checkpoint: saved every tick, resumed from when the process restarts
     sim: core.SensorSimParams = field(default_factory=core.SensorSimParams)  # the simulation itself
 
 
@@ -67,7 +80,19 @@ def _simulate(node: Node, model: core.SimModel, params: SensorSimNodeParams, cmd
     """The clock: the start phase, then one tick per command (lockstep) or per wall period."""
     rng = np.random.default_rng(params.seed)
     dt = params.sim.dt_s
-    state, frame = core.start(model, rng)
+    ckpt = Checkpoint(params.state_path, SimCheckpoint) if params.state_path else None
+    saved = ckpt.load() if ckpt else None
+    if saved is not None:
+        if (saved.world, saved.seed) != (model.world.name, params.seed):
+            raise CheckpointError(f"{params.state_path} holds world {saved.world!r} seed {saved.seed}, "
+                                  f"not {model.world.name!r} seed {params.seed}")
+        state, frame = saved.state, saved.frame
+        rng.bit_generator.state = msgspec.json.decode(saved.rng_state)
+        cmds.started, cmds.tick = True, state.tick
+        log.info("%s: resumed at tick %d from %s", SERVICE, state.tick, params.state_path)
+        out.publish(frame)  # again: the killed process may have died before publishing all of it
+    else:
+        state, frame = core.start(model, rng)
     node.announce()
     wall_end = time.monotonic() + params.duration_s if params.duration_s else math.inf
     log.info("%s: world %s, seed %d, %s, waiting for the first command on %s", SERVICE, model.world.name,
@@ -80,7 +105,7 @@ def _simulate(node: Node, model: core.SimModel, params: SensorSimNodeParams, cmd
     def ready() -> bool:
         return cmds.started and (watcher is None or set(params.wait_for) <= watcher.alive)
 
-    while not stop.is_set() and time.monotonic() < wall_end and not ready():
+    while not stop.is_set() and time.monotonic() < wall_end and saved is None and not ready():
         out.publish(frame)
         deadline = time.monotonic() + params.start_repeat_s
         while not ready() and not stop.is_set() and (now := time.monotonic()) < deadline:
@@ -119,6 +144,9 @@ def _simulate(node: Node, model: core.SimModel, params: SensorSimNodeParams, cmd
             cmd = cmds.latest if fresh else (0.0, 0.0)
         state, frame = core.step(state, cmd, model, rng)
         cmds.tick = state.tick
+        if ckpt is not None:  # before publishing: whoever heard of a tick finds it in the checkpoint
+            ckpt.save(SimCheckpoint(world=model.world.name, seed=params.seed, state=state, frame=frame,
+                                    rng_state=msgspec.json.encode(rng.bit_generator.state)))
         # health first: whoever has seen a tick's messages finds health at least that far
         _update_detail(node, state, cmds, dt, time.monotonic() - t_run)
         out.publish(frame)
@@ -234,6 +262,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-sim-time", type=positive_float, default=None, metavar="S",
                         help="end the run at this simulated time (seconds)")
     parser.add_argument("--duration-s", type=positive_float, default=None, help="end the run after this wall time")
+    parser.add_argument("--state", metavar="PATH", default=None,
+                        help="checkpoint file: saved every tick; a restarted process resumes from it")
     parser.add_argument("--wait-for", action="append", default=[], metavar="SERVICE",
                         help="do not start before SERVICE is alive on the bus (repeatable)")
 
@@ -243,7 +273,8 @@ def params_from_args(args: argparse.Namespace) -> SensorSimNodeParams:
     return SensorSimNodeParams(seed=args.seed, lockstep=args.rtf is None,
                                rtf=args.rtf if args.rtf is not None else 1.0,
                                lockstep_timeout_s=args.lockstep_timeout_s, max_sim_time_s=args.max_sim_time,
-                               duration_s=args.duration_s, wait_for=tuple(args.wait_for), sim=sim)
+                               duration_s=args.duration_s, wait_for=tuple(args.wait_for), state_path=args.state,
+                               sim=sim)
 
 
 def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.Event) -> None:
