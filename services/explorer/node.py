@@ -42,7 +42,7 @@ from services.explorer.core import (
     PlacePredictedEvent,
 )
 from services.runtime import Node, positive_float
-from services.runtime.checkpoint import Checkpoint
+from services.runtime.checkpoint import Checkpoint, EventLog
 
 SERVICE = "explorer"
 log = logging.getLogger("relaxmap.explorer")
@@ -98,9 +98,11 @@ class ExplorerShell:
     command. Once exploration is complete every tick is answered with zero velocity.
     """
 
-    def __init__(self, params: ExplorerNodeParams, publish, clock=time.monotonic, save=None) -> None:
+    def __init__(self, params: ExplorerNodeParams, publish, clock=time.monotonic, save=None,
+                 log_events=None) -> None:
         self.params = params
         self._save = save  # save(checkpoint), called with every answer before anything is published
+        self._log_events = log_events  # log_events([(topic name, message)]): place events, before they go out
         self.core = Explorer(params.core)
         self._publish = publish  # publish(topic_name, message)
         self._clock = clock
@@ -231,6 +233,9 @@ class ExplorerShell:
                 confirmed=st.confirmed, predicted=st.predicted, target_id=st.target_id)
         command = VelocityCommand(stamp=pose.stamp, seq=self._next_seq("cmd_velocity"), v_mps=cmd[0],
                                   omega_radps=cmd[1], tick=tick)
+        map_events = [(name, msg) for name, msg in events if name in _EVENT_TOPIC.values()]
+        if self._log_events is not None and map_events:
+            self._log_events(map_events)
         if self._save is not None:  # a place id published is a place id the checkpoint knows
             self._save(self.checkpoint())
         for name, msg in events:
@@ -244,6 +249,11 @@ class ExplorerShell:
                                                       omega_radps=w, tick=tick))
 
 
+# The place events, logged before they go out and published again after a restart. A repeat is harmless
+# (place ids are never reused: a known place stays known, a deleted one deleted); a link deletion is
+# not logged, since a repeat of it could remove the same link measured again later.
+_MapEvent = PlaceConfirmed | PlaceDeleted
+_EVENT_TOPIC = {PlaceConfirmed: "places_confirmed", PlaceDeleted: "places_deleted"}
 _TYPES = {"cmd_velocity": VelocityCommand, "places_predicted": PlacePredicted, "places_confirmed": PlaceConfirmed,
           "places_deleted": PlaceDeleted, "links_inferred": LinkInferred, "links_confidence": LinkConfidence,
           "links_deleted": LinkDeleted, "exploration_status": ExplorationStatus}
@@ -258,12 +268,22 @@ def run(session: zenoh.Session, params: ExplorerNodeParams = ExplorerNodeParams(
                                      history=topics.MAP_EVENT_HISTORY if name in topics.MAP_EVENT_TOPICS else 0)
                 for name, type_ in _TYPES.items()}
         ckpt = Checkpoint(params.state_path, ExplorerCheckpoint) if params.state_path else None
-        shell = ExplorerShell(params, lambda name, msg: pubs[name].put(msg), save=ckpt.save if ckpt else None)
+        events = EventLog(f"{params.state_path}.events", _MapEvent) if params.state_path else None
+        shell = ExplorerShell(params, lambda name, msg: pubs[name].put(msg), save=ckpt.save if ckpt else None,
+                              log_events=(lambda evs: events.append([m for _, m in evs])) if events else None)
         saved = ckpt.load() if ckpt else None
         if saved is not None:
             shell.resume(saved)
             log.info("%s: resumed at tick %d with %d places from %s", SERVICE, shell.last_tick,
                      len(shell.core.places), params.state_path)
+        if events is not None:
+            # the killed process may have logged place events that never left it: all of them again,
+            # in their order
+            resent = events.read()
+            for msg in resent:
+                pubs[_EVENT_TOPIC[type(msg)]].put(msg)
+            if resent:
+                log.info("%s: %d map events of %s published again", SERVICE, len(resent), events.path)
 
         def update_detail() -> None:
             node.detail.update(shell.counts)

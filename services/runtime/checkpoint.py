@@ -125,3 +125,36 @@ class Checkpoint(Generic[T]):
             if fd is not None:
                 os.close(fd)
                 self._fds[i] = None
+
+
+class EventLog(Generic[T]):
+    """Messages appended one JSON line each, read back in order: what a service published (or is about
+    to), so that a restarted process can publish again what its killed predecessor may not have sent.
+
+    One ``write`` per append: a killed process leaves whole lines (a line cut short is skipped on reading).
+    """
+
+    def __init__(self, path: str | os.PathLike, type_: Any) -> None:
+        self.path = Path(path)
+        self._encoder = msgspec.json.Encoder()
+        self._decoder = msgspec.json.Decoder(type_)
+
+    def append(self, messages: list) -> None:
+        if messages:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            with open(self.path, "ab") as f:
+                f.write(b"".join(self._encoder.encode(m) + b"\n" for m in messages))
+
+    def read(self) -> list:
+        """Every whole message logged, oldest first."""
+        try:
+            lines = self.path.read_bytes().splitlines()
+        except FileNotFoundError:
+            return []
+        out = []
+        for line in lines:
+            try:
+                out.append(self._decoder.decode(line))
+            except msgspec.DecodeError:
+                continue
+        return out
