@@ -182,6 +182,7 @@ class RecognizerShell:
                        "dropped_scans": 0, "unpaired_scans": 0, "late_events": 0, "repeated_scans": 0,
                        "order_timeouts": 0, "repeated_events": 0, "resent_links": 0}
         self._last_scan_seq = -1
+        self._last_belief: LocalizationBelief | None = None  # published for the scan of _last_scan_seq
         self.latest_stamp = -math.inf
 
     def _tick(self, stamp: float) -> int:
@@ -229,6 +230,9 @@ class RecognizerShell:
     def on_sonar(self, msg: SonarScan) -> None:
         if msg.seq <= self._last_scan_seq or any(s.seq == msg.seq for s, _ in self._scans):
             self.counts["repeated_scans"] += 1  # the simulator repeats tick 0 until it starts
+            last = self._last_belief
+            if last is not None and msg.seq == self._last_scan_seq and last.stamp == msg.stamp:
+                self._publish_belief(last)  # so does its localization, for a subscriber that came late
             return
         bisect.insort(self._scans, (msg, self._clock()), key=lambda e: e[0].stamp)
         if len(self._scans) > self.params.max_pending_scans:
@@ -317,6 +321,7 @@ class RecognizerShell:
             offset_x_m=loc.offset_x_m, offset_y_m=loc.offset_y_m, offset_var_m2=loc.offset_var_m2,
             hypotheses=[Hypothesis(place_id=i, probability=p) for i, p in loc.hypotheses])
         self._belief_seq += 1
+        self._last_belief = belief
         links = self._links(out, scan.stamp)
         self._commit(links)
         self._publish_belief(belief)
@@ -397,9 +402,15 @@ def run(session: zenoh.Session, params: PlaceRecognizerNodeParams = PlaceRecogni
         node.subscribe(topics.sonar(robot), SonarScan, shell.on_sonar)
         node.subscribe(topics.odometry(robot), OdometryStep, shell.on_odometry)
         node.subscribe(topics.cmd_velocity(robot), VelocityCommand, shell.on_command)
-        # with history: a restarted recognizer hears the places confirmed or deleted while it was away
-        node.subscribe(topics.places_confirmed(robot), PlaceConfirmed, shell.on_explorer_event, history=True)
-        node.subscribe(topics.places_deleted(robot), PlaceDeleted, shell.on_explorer_event, history=True)
+        node.subscribe(topics.places_confirmed(robot), PlaceConfirmed, shell.on_explorer_event)
+        node.subscribe(topics.places_deleted(robot), PlaceDeleted, shell.on_explorer_event)
+        if saved is not None:
+            # resumed: the explorer's history brings the place events sent while this process was away
+            # (an event heard on both subscribers is applied once). Only then: a history subscriber may
+            # hand over an event after the velocity command the explorer sent after it, and the order
+            # of events and scans (above) would no longer be the explorer's.
+            node.subscribe(topics.places_confirmed(robot), PlaceConfirmed, shell.on_explorer_event, history=True)
+            node.subscribe(topics.places_deleted(robot), PlaceDeleted, shell.on_explorer_event, history=True)
         node.subscribe(topics.map_update(robot), MapUpdate, shell.on_map_update)
         update_detail()
         wall_end = time.monotonic() + params.duration_s if params.duration_s else math.inf
@@ -426,6 +437,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-sim-time", type=positive_float, default=None, metavar="S",
                         help="stop after the pose that reaches this simulated time")
     parser.add_argument("--duration-s", type=positive_float, default=None, help="stop after this wall time")
+    parser.add_argument("--order-timeout-s", type=positive_float, default=0.5,
+                        help="wall time an input waits for the inputs that must come first (default 0.5)")
     parser.add_argument("--state", metavar="PATH", default=None,
                         help="checkpoint file (and PATH.signatures/): a restarted process resumes from it")
     parser.add_argument("--links-log", metavar="PATH", default=None,
@@ -436,5 +449,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.Event) -> None:
     """What ``python -m services.place_recognizer`` runs once the session is open."""
     run(session, PlaceRecognizerNodeParams(follow_map=not args.no_follow_map, max_sim_time_s=args.max_sim_time,
-                                           duration_s=args.duration_s, state_path=args.state,
+                                           duration_s=args.duration_s, order_timeout_s=args.order_timeout_s,
+                                           state_path=args.state,
                                            links_log=args.links_log), robot=args.robot, stop=stop)

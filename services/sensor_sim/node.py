@@ -112,6 +112,10 @@ def _simulate(node: Node, model: core.SimModel, params: SensorSimNodeParams, cmd
             node.spin_once(deadline - now)
     if watcher is not None:
         watcher.close()
+        if saved is None and ready():
+            # once more: a service declares its token after its subscribers, so every awaited one
+            # hears this frame, even one that became alive just after the last repeat
+            out.publish(frame)
     t_run = time.monotonic()
     node.detail["started"] = 1
     last_cmd_wall = time.monotonic()
