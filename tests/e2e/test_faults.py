@@ -1,4 +1,4 @@
-"""Faults in a full run: every service is SIGKILLed once, at a seeded random moment, and nothing is lost."""
+"""Faults in a full run: every service SIGKILLed once loses no link; garbage on every key changes no map."""
 
 from __future__ import annotations
 
@@ -12,7 +12,10 @@ import sys
 import threading
 import time
 
+import pytest
 import zenoh
+from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import strategies as st
 
 from messages import topics
 from messages.codec import DecodeError, codec
@@ -146,3 +149,129 @@ def test_every_service_killed_once_loses_no_link(tmp_path):
     for log in (out / "logs").iterdir():
         assert "Traceback" not in log.read_text(), log.read_text()[-2000:]
 
+
+
+GARBAGE_SIM_S = float(os.environ.get("RELAXMAP_GARBAGE_SIM_S", "300"))
+
+
+def _run(out, graph, port: int | None = None, *, seed: int = 3) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "services.cli", "run", "--port", str(port or free_port()),
+                             "--headless", "--graph", str(graph), "--world", "orebro-office", "--seed", str(seed),
+                             "--out", str(out), "--max-sim-time", f"{GARBAGE_SIM_S:g}"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+
+
+def _finish(proc: subprocess.Popen) -> None:
+    try:
+        _, err = proc.communicate(timeout=600)
+    finally:
+        stop_group(proc)
+    assert proc.returncode == 0, err[-3000:]
+
+
+def _map(path):
+    m = read_map_json(path)
+    ids = m.graph.ids.tolist()
+    links = sorted((ids[a], ids[b], d, th, st_) for a, b, d, th, st_ in zip(
+        m.graph.src.tolist(), m.graph.dst.tolist(), m.graph.d_m.tolist(), m.graph.theta_rad.tolist(),
+        m.graph.steps.tolist(), strict=True))
+    return ids, m.xy, links
+
+
+# The run's wall-time limits, raised so that no input of a loaded machine misses its turn.
+PATIENT = {"explorer": ["--no-follow-map", "--localization-timeout-s", "30"],
+           "place_recognizer": ["--no-follow-map", "--order-timeout-s", "30"],
+           "sensor_sim": ["--lockstep-timeout-s", "30"]}
+
+
+def _reproducible_graph(tmp_path):
+    """deploy/graph.json made reproducible: the explorer and recognizer keep their own place centres
+    (relaxed coordinates arrive when the relaxer is done, not at a tick), and the waits for an input
+    that must come first (limited in wall time) are long enough never to expire."""
+    graph = json.loads(deploy_file("graph.json").read_text())
+    for s in graph["services"]:
+        s["args"].extend(PATIENT.get(s["name"], []))
+    path = tmp_path / "graph.json"
+    path.write_text(json.dumps(graph))
+    return path
+
+
+def _garbage_pool(per_key: int = 20) -> dict[str, list[bytes]]:
+    """Undecodable payloads for every key of messages/topics.py, drawn by hypothesis (the strategies of
+    the bus test): random bytes, random msgpack, messages of other types."""
+    from tests.bus.test_bad_input import CARRIES, _payload
+
+    pool: dict[str, list[bytes]] = {name: [] for name in topics.all_topics(ROBOT)}
+
+    @settings(max_examples=per_key * len(pool), phases=[Phase.generate], deadline=None, database=None,
+              suppress_health_check=list(HealthCheck))
+    @given(data=st.data())
+    def draw(data):
+        name = data.draw(st.sampled_from(sorted(pool)))
+        pool[name].append(data.draw(_payload(CARRIES[name])))
+
+    draw()
+    return pool
+
+
+def _same_map(a, b) -> bool:
+    (ids_a, xy_a, links_a), (ids_b, xy_b, links_b) = _map(a), _map(b)
+    return ids_a == ids_b and links_a == links_b and bool(abs(xy_a - xy_b).max() < 1e-9)
+
+
+def _dirty_run(out, graph, pool) -> int:
+    """A run with every key of messages/topics.py flooded with garbage, round after round; returns how
+    many messages were sent."""
+    port = free_port()
+    proc = _run(out, graph, port)
+    session = zenoh.open(loopback_config(connect=[f"tcp/127.0.0.1:{port}"]))
+    pubs = {name: session.declare_publisher(key) for name, key in topics.all_topics(ROBOT).items()}
+    sent = 0
+    try:
+        _wait(lambda: _pid(session, "sensor_sim") is not None, 60, "the run's start", proc)
+        while proc.poll() is None:
+            for name in sorted(pubs):
+                pubs[name].put(pool[name][sent % len(pool[name])] if pool[name] else b"\xc1")
+                sent += 1
+            time.sleep(0.02)
+    finally:
+        for p in pubs.values():
+            p.undeclare()
+        session.close()
+    _finish(proc)
+    return sent
+
+
+def test_garbage_on_every_key_leaves_the_map_as_a_clean_run_makes_it(tmp_path):
+    """Garbage on every key during a whole run: every service logs it, nothing is lost, and the map
+    is the clean run's.
+
+    Lockstep runs are reproducible only while no input misses its turn (docs/runtime.md); on a loaded
+    machine a run, clean or not, now and then takes another course. So a difference is checked again:
+    a second clean run that differs from the first skips the comparison (it says nothing here), and
+    the test fails when a second run with garbage differs from two identical clean runs as well."""
+    pool = _garbage_pool()
+    graph = _reproducible_graph(tmp_path)
+    _finish(_run(tmp_path / "clean", graph))
+    dirty = tmp_path / "dirty"
+    sent = _dirty_run(dirty, graph, pool)
+    print(f"\n{sent} undecodable messages sent on {len(pool)} keys")
+    for log in (dirty / "logs").iterdir():
+        text = log.read_text()
+        assert "Traceback" not in text, text[-2000:]
+        assert "undecodable message" in text, f"{log.name}: no bad message noticed"
+    summary = json.loads((dirty / "summary.json").read_text())
+    assert summary["links_lost"] == 0 and summary["sim_time_s"] >= GARBAGE_SIM_S - 1, summary
+    recorded = {frozenset((lk.from_id, lk.to_id)) for lk in read_links_log(dirty / "links_measured.jsonl")}
+    m = read_map_json(dirty / "map.json")
+    ids = m.graph.ids.tolist()
+    assert recorded == {frozenset((ids[a], ids[b])) for a, b in zip(m.graph.src.tolist(), m.graph.dst.tolist())}
+    clean = tmp_path / "clean" / "map.json"
+    if _same_map(clean, dirty / "map.json"):
+        return
+    _finish(_run(tmp_path / "clean2", graph))
+    if not _same_map(clean, tmp_path / "clean2" / "map.json"):
+        pytest.skip("two clean runs of the same seed differ on this machine (an input missed its turn)")
+    _dirty_run(tmp_path / "dirty2", graph, pool)
+    assert _same_map(clean, tmp_path / "dirty2" / "map.json"), (
+        "two runs with garbage differ from two identical clean runs")
