@@ -15,7 +15,7 @@ from messages import topics
 from messages.types import CompassReading, DeadReckonedPose, OdometryStep
 from services.dead_reckoning import core
 from services.runtime import Node, finite_float, nonnegative_float, nonnegative_int, positive_float
-
+from services.runtime.checkpoint import Checkpoint
 
 SERVICE = "dead_reckoning"
 log = logging.getLogger("relaxmap.dead_reckoning")
@@ -25,6 +25,7 @@ log = logging.getLogger("relaxmap.dead_reckoning")
 class DeadReckoningNodeParams:
     max_sim_time_s: float | None = None  # stop after integrating a step stamped at or past this time
     duration_s: float | None = None  # stop after this wall time
+    state_path: str | None = None  # checkpoint: saved with every pose, resumed from after a restart
     filter_params: core.DeadReckoningParams = field(default_factory=core.DeadReckoningParams)  # the filter
     start: core.DrState = field(default_factory=core.DrState)  # the state to start from (a continued run's)
 
@@ -33,7 +34,11 @@ def run(session: zenoh.Session, params: DeadReckoningNodeParams = DeadReckoningN
         robot: str = topics.DEFAULT_ROBOT, stop: threading.Event | None = None) -> core.DrState:
     """Integrate the sensor streams until ``stop`` or a limit; return the final filter state."""
     stop = stop or threading.Event()
-    state = params.start
+    ckpt = Checkpoint(params.state_path, core.DrState) if params.state_path else None
+    state = (ckpt.load() if ckpt else None) or params.start  # a checkpoint (a restart) wins over the start
+    if ckpt is not None and state is not params.start:
+        log.info("%s: resumed after %d steps (stamp %.1f s) from %s", SERVICE, state.steps, state.last_stamp,
+                 params.state_path)
     with Node(session, SERVICE, robot=robot) as node:
         pub = node.publisher(topics.dr_pose(robot), DeadReckonedPose)
         node.detail.update(steps=0, path_length_m=0.0, last_stamp_s=0.0, gaps=0, gaps_odometry=0,
@@ -44,6 +49,8 @@ def run(session: zenoh.Session, params: DeadReckoningNodeParams = DeadReckoningN
             state, poses = core.step(state, msg, params.filter_params)
             if not poses:
                 return
+            if ckpt is not None:  # before publishing: a pose out is a pose the checkpoint knows
+                ckpt.save(state)
             _update_detail(node, state)  # first: whoever has seen a pose finds health that far
             for pose in poses:
                 pub.put(pose)
@@ -97,6 +104,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="... the odometry steps it had integrated")
     parser.add_argument("--start-path-m", type=nonnegative_float, default=0.0, metavar="M",
                         help="... the distance it had integrated")
+    parser.add_argument("--state", metavar="PATH", default=None,
+                        help="checkpoint file: saved with every pose; a restarted process resumes from it")
 
 
 def params_from_args(args: argparse.Namespace) -> DeadReckoningNodeParams:
@@ -105,7 +114,8 @@ def params_from_args(args: argparse.Namespace) -> DeadReckoningNodeParams:
         raw = tuple(args.start_raw) if args.start_raw is not None else None
         start = core.continued_state(tuple(args.start_xy), raw, steps=args.start_steps,
                                      path_length_m=args.start_path_m)
-    return DeadReckoningNodeParams(max_sim_time_s=args.max_sim_time, duration_s=args.duration_s, start=start)
+    return DeadReckoningNodeParams(max_sim_time_s=args.max_sim_time, duration_s=args.duration_s, start=start,
+                                   state_path=args.state)
 
 
 def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.Event) -> None:

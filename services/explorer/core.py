@@ -186,6 +186,31 @@ def _key(a: int, b: int) -> tuple[int, int]:
     return (a, b) if a < b else (b, a)
 
 
+class ExplorerState(msgspec.Struct, frozen=True):
+    """Everything an :class:`Explorer` knows (its parameters aside), to go on after a restart."""
+
+    places: list[Place]
+    links: list[Link]
+    robot_xy: tuple[float, float] | None
+    current: int
+    last_place: int
+    leg: tuple[int, int] | None
+    target: int
+    loop_queue: list[tuple[int, int]]
+    complete: bool
+    next_id: int
+    last_pose: Pose2 | None
+    last_scan: SonarScan | None
+    scan_heading: float
+    moving: list[tuple[float, float, float]]
+    recover_until: float
+    recover_cmd: tuple[float, float]
+    stalls: int
+    leg_start_s: float
+    blocked_since: float | None
+    fix_after_s: float
+
+
 class Explorer:
     """Explores by going to the nearest predicted place (Section 4.2).
 
@@ -250,6 +275,32 @@ class Explorer:
         self._leg_start_s = 0.0
         self._blocked_since: float | None = None
         self._fix_after_s = -math.inf  # localizations older than this are stale (before a confirmation)
+
+    def snapshot(self) -> ExplorerState:
+        """The explorer's state (copies), for :meth:`restore`."""
+        return ExplorerState(
+            places=[Place(**vars(q)) for q in self.places.values()],
+            links=[Link(**vars(lk)) for lk in self.links.values()], robot_xy=self.robot_xy,
+            current=self.current, last_place=self.last_place, leg=self.leg, target=self.target,
+            loop_queue=list(self.loop_queue), complete=self.complete, next_id=self._next_id,
+            last_pose=self._last_pose, last_scan=self._last_scan, scan_heading=self._scan_heading,
+            moving=list(self._moving), recover_until=self._recover_until, recover_cmd=self._recover_cmd,
+            stalls=self.stalls, leg_start_s=self._leg_start_s, blocked_since=self._blocked_since,
+            fix_after_s=self._fix_after_s)
+
+    def restore_snapshot(self, state: ExplorerState) -> None:
+        """Take up the state of :meth:`snapshot` (of an explorer with the same parameters)."""
+        self.places = {q.place_id: Place(**vars(q)) for q in state.places}
+        self.links = {_key(lk.a, lk.b): Link(**vars(lk)) for lk in state.links}
+        self.robot_xy = tuple(state.robot_xy) if state.robot_xy is not None else None
+        self.current, self.last_place = state.current, state.last_place
+        self.leg = tuple(state.leg) if state.leg is not None else None
+        self.target, self.loop_queue, self.complete = state.target, [tuple(q) for q in state.loop_queue], state.complete
+        self._next_id, self._last_pose, self._last_scan = state.next_id, state.last_pose, state.last_scan
+        self._scan_heading, self._moving = state.scan_heading, deque(tuple(m) for m in state.moving)
+        self._recover_until, self._recover_cmd = state.recover_until, tuple(state.recover_cmd)
+        self.stalls, self._leg_start_s = state.stalls, state.leg_start_s
+        self._blocked_since, self._fix_after_s = state.blocked_since, state.fix_after_s
 
     # --- inputs -------------------------------------------------------------------------------
 

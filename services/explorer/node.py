@@ -9,6 +9,7 @@ import threading
 import time
 from dataclasses import asdict, dataclass, field
 
+import msgspec
 import zenoh
 
 from messages import topics
@@ -33,6 +34,7 @@ from services.explorer.core import (
     Explorer,
     ExplorerOutput,
     ExplorerParams,
+    ExplorerState,
     LinkConfidenceEvent,
     LinkDeletedEvent,
     LinkInferredEvent,
@@ -50,6 +52,7 @@ from services.runtime.saved_map import (
     robot_at_from_args,
     sonar_scan,
 )
+from services.runtime.checkpoint import Checkpoint, EventLog
 
 SERVICE = "explorer"
 log = logging.getLogger("relaxmap.explorer")
@@ -77,7 +80,23 @@ class ExplorerNodeParams:
     first_place_id: int = 0  # with resume: new places get ids from here on (above every id used before)
     resume_near_m: float = 1.0  # places are predicted from their scans taken this close to the centre
     resume_at: RobotAt | None = None  # with resume: where the robot was (None: by the latest stored scan)
+    state_path: str | None = None  # checkpoint: saved with every answered tick, resumed from after a restart
     core: ExplorerParams = field(default_factory=ExplorerParams)  # the explorer itself
+
+
+class ExplorerCheckpoint(msgspec.Struct, frozen=True):
+    """The explorer and the shell's bookkeeping, as of the last tick answered."""
+
+    core: ExplorerState
+    last_tick: int
+    sensor_tick: int
+    last_cmd: tuple[float, float]
+    seq: dict[str, int]
+    status: tuple[bool, int, int, int] | None
+    status_stamp: float
+    scans: dict[int, SonarScan]
+    beliefs: dict[int, LocalizationBelief]
+    counts: dict[str, int]
 
 
 class ExplorerShell:
@@ -93,8 +112,11 @@ class ExplorerShell:
     command. Once exploration is complete every tick is answered with zero velocity.
     """
 
-    def __init__(self, params: ExplorerNodeParams, publish, clock=time.monotonic) -> None:
+    def __init__(self, params: ExplorerNodeParams, publish, clock=time.monotonic, save=None,
+                 log_events=None) -> None:
         self.params = params
+        self._save = save  # save(checkpoint), called with every answer before anything is published
+        self._log_events = log_events  # log_events([(topic name, message)]): place events, before they go out
         self.core = Explorer(params.core)
         self._publish = publish  # publish(topic_name, message)
         self._clock = clock
@@ -115,6 +137,21 @@ class ExplorerShell:
 
     def _tick_of(self, stamp: float) -> int:
         return round(stamp / self.params.dt_s)
+
+    def checkpoint(self) -> ExplorerCheckpoint:
+        return ExplorerCheckpoint(
+            core=self.core.snapshot(), last_tick=self.last_tick, sensor_tick=self._sensor_tick,
+            last_cmd=self._last_cmd, seq=dict(self._seq), status=self._status, status_stamp=self._status_stamp,
+            scans=dict(self._scans), beliefs=dict(self._beliefs), counts=dict(self.counts))
+
+    def resume(self, ckpt: ExplorerCheckpoint) -> None:
+        """Go on from a checkpoint: the ticks it answered are answered, its events published."""
+        self.core.restore_snapshot(ckpt.core)
+        self.last_tick, self._sensor_tick, self._last_cmd = ckpt.last_tick, ckpt.sensor_tick, tuple(ckpt.last_cmd)
+        self._seq, self._status_stamp = dict(ckpt.seq), ckpt.status_stamp
+        self._status = tuple(ckpt.status) if ckpt.status is not None else None
+        self._scans, self._beliefs = dict(ckpt.scans), dict(ckpt.beliefs)
+        self.counts.update(ckpt.counts)
 
     def _next_seq(self, name: str) -> int:
         n = self._seq.get(name, 0)
@@ -215,28 +252,46 @@ class ExplorerShell:
         self.counts["fixes"] += fix is not None
         out = self.core.step(pose.stamp, pose.compass, scan, fix)
         self.output = out
+        events = []
         for ev in out.events:
             msg_type, name = _EVENT_TYPES[type(ev)]
-            self._publish(name, msg_type(stamp=pose.stamp, seq=self._next_seq(name), **asdict(ev)))
-            self.counts["events"] += 1
+            events.append((name, msg_type(stamp=pose.stamp, seq=self._next_seq(name), **asdict(ev))))
         cmd = (0.0, 0.0) if out.status.complete else (out.command.v_mps, out.command.omega_radps)
         self.counts["ticks"] += 1
+        self.counts["events"] += len(events)
         self.counts["complete"] = int(out.status.complete)
         self.last_tick, self._last_cmd = tick, cmd
-        self._command(pose.stamp, tick, *cmd)
         st = out.status
         key = (st.complete, st.confirmed, st.predicted, st.target_id)
+        status = None
         if key != self._status or pose.stamp - self._status_stamp >= self.params.status_period_s - 1e-9:
             self._status, self._status_stamp = key, pose.stamp
-            self._publish("exploration_status", ExplorationStatus(
+            status = ExplorationStatus(
                 stamp=pose.stamp, seq=self._next_seq("exploration_status"), complete=st.complete,
-                confirmed=st.confirmed, predicted=st.predicted, target_id=st.target_id))
+                confirmed=st.confirmed, predicted=st.predicted, target_id=st.target_id)
+        command = VelocityCommand(stamp=pose.stamp, seq=self._next_seq("cmd_velocity"), v_mps=cmd[0],
+                                  omega_radps=cmd[1], tick=tick)
+        map_events = [(name, msg) for name, msg in events if name in _EVENT_TOPIC.values()]
+        if self._log_events is not None and map_events:
+            self._log_events(map_events)
+        if self._save is not None:  # a place id published is a place id the checkpoint knows
+            self._save(self.checkpoint())
+        for name, msg in events:
+            self._publish(name, msg)
+        self._publish("cmd_velocity", command)
+        if status is not None:
+            self._publish("exploration_status", status)
 
     def _command(self, stamp: float, tick: int, v: float, w: float) -> None:
         self._publish("cmd_velocity", VelocityCommand(stamp=stamp, seq=self._next_seq("cmd_velocity"), v_mps=v,
                                                       omega_radps=w, tick=tick))
 
 
+# The place events, logged before they go out and published again after a restart. A repeat is harmless
+# (place ids are never reused: a known place stays known, a deleted one deleted); a link deletion is
+# not logged, since a repeat of it could remove the same link measured again later.
+_MapEvent = PlaceConfirmed | PlaceDeleted
+_EVENT_TOPIC = {PlaceConfirmed: "places_confirmed", PlaceDeleted: "places_deleted"}
 _TYPES = {"cmd_velocity": VelocityCommand, "places_predicted": PlacePredicted, "places_confirmed": PlaceConfirmed,
           "places_deleted": PlaceDeleted, "links_inferred": LinkInferred, "links_confidence": LinkConfidence,
           "links_deleted": LinkDeleted, "exploration_status": ExplorationStatus}
@@ -250,9 +305,25 @@ def run(session: zenoh.Session, params: ExplorerNodeParams = ExplorerNodeParams(
         pubs = {name: node.publisher(getattr(topics, name)(robot), type_,
                                      history=topics.MAP_EVENT_HISTORY if name in topics.MAP_EVENT_TOPICS else 0)
                 for name, type_ in _TYPES.items()}
-        shell = ExplorerShell(params, lambda name, msg: pubs[name].put(msg))
-        if params.resume:
+        ckpt = Checkpoint(params.state_path, ExplorerCheckpoint) if params.state_path else None
+        events = EventLog(f"{params.state_path}.events", _MapEvent) if params.state_path else None
+        shell = ExplorerShell(params, lambda name, msg: pubs[name].put(msg), save=ckpt.save if ckpt else None,
+                              log_events=(lambda evs: events.append([m for _, m in evs])) if events else None)
+        saved = ckpt.load() if ckpt else None
+        if saved is not None:  # a restart within the run: the checkpoint wins over --resume
+            shell.resume(saved)
+            log.info("%s: resumed at tick %d with %d places from %s", SERVICE, shell.last_tick,
+                     len(shell.core.places), params.state_path)
+        elif params.resume:
             shell.restore(fetch_saved_map(session, robot, near_m=params.resume_near_m, at=params.resume_at))
+        if events is not None:
+            # the killed process may have logged place events that never left it: all of them again,
+            # in their order
+            resent = events.read()
+            for msg in resent:
+                pubs[_EVENT_TOPIC[type(msg)]].put(msg)
+            if resent:
+                log.info("%s: %d map events of %s published again", SERVICE, len(resent), events.path)
 
         def update_detail() -> None:
             node.detail.update(shell.counts)
@@ -307,6 +378,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_resume_arguments(parser)
     parser.add_argument("--first-place-id", type=nonnegative_int, default=0, metavar="N",
                         help="with --resume: new places get ids from N on (above every id used before)")
+    parser.add_argument("--state", metavar="PATH", default=None,
+                        help="checkpoint file: saved with every answered tick; a restarted process resumes from it")
 
 
 def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.Event) -> None:
@@ -315,5 +388,6 @@ def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.E
                                     localization_timeout_s=args.localization_timeout_s,
                                     follow_map=not args.no_follow_map, max_sim_time_s=args.max_sim_time,
                                     duration_s=args.duration_s, resume=args.resume,
-                                    first_place_id=args.first_place_id, resume_at=robot_at_from_args(args)),
+                                    first_place_id=args.first_place_id, resume_at=robot_at_from_args(args),
+                                    state_path=args.state),
         robot=args.robot, stop=stop)

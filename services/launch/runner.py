@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import shutil
 import time
 import uuid
 from dataclasses import dataclass
@@ -190,7 +191,14 @@ def run(args: argparse.Namespace) -> int:
     console = Console(stderr=True, log_path=False)
     plan = plan_run(args)
     out = plan.out
+    held = [name for name in ("run.json", "map.sqlite", "state") if (out / name).exists()]
+    if plan.saved is None and held:
+        raise RunError(f"{out} holds a run ({', '.join(held)}): continue it with --resume {out}, or give the "
+                       "new run another --out")
     out.mkdir(parents=True, exist_ok=True)
+    # the services' checkpoints are for restarts within one part: a continued run starts from run.json
+    # and the relaxer's map (below), not from where a killed process of the last part was
+    shutil.rmtree(out / "state", ignore_errors=True)
     try:
         graph = load_graph(args.graph or deploy_file("graph.json"))
     except GraphError as e:

@@ -6,6 +6,7 @@ from collections import deque
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
+import msgspec
 import numpy as np
 
 from messages.types import DeadReckonedPose, SonarScan
@@ -114,7 +115,7 @@ class _Pending:
 
 
 @dataclass
-class _Signature:
+class PlaceSignature:
     """A place's stored local grid (centred on the place, dead-reckoning frame) and its histograms."""
 
     logodds: np.ndarray
@@ -176,6 +177,22 @@ class LinkAccumulator:
         )
 
 
+class RecognizerState(msgspec.Struct, frozen=True):
+    """What a :class:`PlaceRecognizer` knows besides its places' signatures, to go on after a restart."""
+
+    belief: _belief.Belief
+    current: int
+    first_visit: int
+    scans: list[tuple[PlacedScan, float]]
+    last_xy: tuple[float, float] | None
+    inside: _Mark | None
+    departure: _Mark | None
+    pending: _Pending | None
+    links: list[LinkAccumulator]
+    rejected_traversals: int
+    signature_ids: list[int]  # the places whose signatures go with this state
+
+
 class PlaceRecognizer:
     """Recognises places from sonar and measures the links between them.
 
@@ -222,7 +239,7 @@ class PlaceRecognizer:
         self.params = params or PlaceRecognizerParams()
         self.belief = _belief.Belief.empty()
         self.current = NO_PLACE
-        self._signatures: dict[int, _Signature] = {}
+        self._signatures: dict[int, PlaceSignature] = {}
         self._first_visit: int = NO_PLACE  # the new place whose signature still grows
         self._scans: deque[tuple[PlacedScan, float]] = deque()
         self._last_xy: tuple[float, float] | None = None
@@ -283,7 +300,7 @@ class PlaceRecognizer:
         grid = build_grid(near, xy, half_width_m=p.grid_half_width_m, cell_m=p.cell_m,
                           logodds_occupied=p.logodds_occupied, logodds_empty=p.logodds_empty,
                           echo_thickness_m=p.echo_thickness_m)
-        self._signatures[place_id] = _Signature(grid, histograms(classify(grid, p.logodds_threshold)), xy)
+        self._signatures[place_id] = PlaceSignature(grid, histograms(classify(grid, p.logodds_threshold)), xy)
         if place_id in set(self.belief.ids.tolist()):
             self.belief = _belief.remove_place(self.belief, place_id)
         if self._last_xy is None:
@@ -338,7 +355,7 @@ class PlaceRecognizer:
             grid = build_grid(near, (0.0, 0.0), half_width_m=p.grid_half_width_m, cell_m=p.cell_m,
                               logodds_occupied=p.logodds_occupied, logodds_empty=p.logodds_empty,
                               echo_thickness_m=p.echo_thickness_m)
-            self._signatures[pid] = _Signature(grid, histograms(classify(grid, p.logodds_threshold)), (0.0, 0.0))
+            self._signatures[pid] = PlaceSignature(grid, histograms(classify(grid, p.logodds_threshold)), (0.0, 0.0))
         for lk in links:
             if lk.from_id in places and lk.to_id in places:
                 w = 1.0 / max(lk.steps, 1)
@@ -379,6 +396,35 @@ class PlaceRecognizer:
     def move_places(self, centres: Mapping[int, tuple[float, float]]) -> None:
         """New coordinates of places (e.g. relaxed); offsets are relative and stay."""
         self.belief = _belief.move_places(self.belief, dict(centres))
+
+    # --- checkpoints --------------------------------------------------------------------------
+
+    def snapshot(self) -> RecognizerState:
+        """The state without the signatures (see :meth:`signatures`); it shares the recognizer's arrays,
+        so it is to be encoded before the next call."""
+        return RecognizerState(
+            belief=self.belief, current=self.current, first_visit=self._first_visit, scans=list(self._scans),
+            last_xy=self._last_xy, inside=self._inside, departure=self._departure,
+            pending=None if self._pending is None else _Pending(**vars(self._pending)),
+            links=[LinkAccumulator(**vars(a)) for a in self._links.values()],
+            rejected_traversals=self.rejected_traversals, signature_ids=list(self._signatures))
+
+    def signatures(self) -> dict[int, PlaceSignature]:
+        """Each place's signature; a signature's ``logodds`` is a new array whenever it has grown."""
+        return dict(self._signatures)
+
+    def restore_snapshot(self, state: RecognizerState, signatures: Mapping[int, PlaceSignature]) -> None:
+        """Take up a :meth:`snapshot` and the signatures of its places."""
+        missing = [i for i in state.signature_ids if i not in signatures]
+        if missing:
+            raise ValueError(f"signatures of places {missing} are missing")
+        self.belief, self.current, self._first_visit = state.belief, state.current, state.first_visit
+        self._signatures = {i: signatures[i] for i in state.signature_ids}
+        self._scans = deque((scan, path) for scan, path in state.scans)
+        self._last_xy = None if state.last_xy is None else tuple(state.last_xy)
+        self._inside, self._departure, self._pending = state.inside, state.departure, state.pending
+        self._links = {frozenset((a.from_id, a.to_id)): a for a in state.links}
+        self.rejected_traversals = state.rejected_traversals
 
     # --- queries ------------------------------------------------------------------------------
 

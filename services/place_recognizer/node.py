@@ -10,7 +10,9 @@ import threading
 import time
 from collections import deque
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
+import msgspec
 import numpy as np
 import zenoh
 
@@ -27,9 +29,17 @@ from messages.types import (
     SonarScan,
     VelocityCommand,
 )
-from services.place_recognizer.core import LinkEstimate, PlaceRecognizer, PlaceRecognizerParams, RecognizerOutput
+from services.place_recognizer.core import (
+    LinkEstimate,
+    PlaceRecognizer,
+    PlaceRecognizerParams,
+    PlaceSignature,
+    RecognizerOutput,
+    RecognizerState,
+)
 from services.place_recognizer.grid import PlacedScan
 from services.runtime import Node, positive_float
+from services.runtime.checkpoint import Checkpoint
 from services.runtime.saved_map import (
     RobotAt,
     SavedMap,
@@ -54,7 +64,96 @@ class PlaceRecognizerNodeParams:
     resume: bool = False  # continue the map the relaxer holds (asked over the bus before the start)
     resume_near_m: float = 1.0  # signatures are rebuilt from the scans taken this close to a centre
     resume_at: RobotAt | None = None  # with resume: where the robot was (None: by the latest stored scan)
+    state_path: str | None = None  # checkpoint: saved with every scan and event applied, resumed after a restart
+    links_log: str | None = None  # every link measured, one JSON line each, appended before it is published
+    checkpoint_poses: int = 16  # the latest dead-reckoned poses kept in the checkpoint
     core: PlaceRecognizerParams = field(default_factory=PlaceRecognizerParams)  # the recognizer itself
+
+
+class RecognizerCheckpoint(msgspec.Struct, frozen=True):
+    """The recognizer (signatures aside) and the shell's bookkeeping after an input was applied."""
+
+    core: RecognizerState
+    poses: list[DeadReckonedPose]  # the latest ones
+    applied: list[int]  # places whose confirmation (and deletion) has been applied, negated for deletions
+    cmd_tick: int
+    sensor_tick: int
+    done_tick: int
+    belief_seq: int
+    link_seq: int
+    last_scan_seq: int
+    latest_stamp: float
+    counts: dict[str, int]
+
+
+class RecognizerFiles:
+    """The recognizer's checkpoint on disk: the state in one file, each place's signature in its own
+    (``<state>.signatures/<id>``, written when it is new or has grown), so that a save costs the size
+    of what changed rather than of the whole map. The links log is appended before a link is published."""
+
+    def __init__(self, state_path: str | None, links_log: str | None) -> None:
+        self.state = Checkpoint(state_path, RecognizerCheckpoint) if state_path else None
+        self._sig_dir = Path(f"{state_path}.signatures") if state_path else None
+        self._saved: dict[int, object] = {}  # place id -> the logodds array saved last
+        self._links_log = Path(links_log) if links_log else None
+        self._link_enc = msgspec.json.Encoder()
+
+    def _signature(self, place_id: int) -> Checkpoint[PlaceSignature]:
+        assert self._sig_dir is not None
+        return Checkpoint(self._sig_dir / str(place_id), PlaceSignature)
+
+    def load(self) -> tuple[RecognizerCheckpoint, dict[int, PlaceSignature]] | None:
+        saved = self.state.load() if self.state else None
+        if saved is None:
+            return None
+        sigs = {}
+        for pid in saved.core.signature_ids:
+            sig = self._signature(pid).load()
+            if sig is not None:
+                sigs[pid] = sig
+                self._saved[pid] = sig.logodds
+        return saved, sigs
+
+    def save(self, shell: RecognizerShell) -> None:
+        if self.state is None:
+            return
+        sigs = shell.core.signatures()
+        for pid, sig in sigs.items():  # first the signatures, then the state that names them
+            if self._saved.get(pid) is not sig.logodds:
+                ckpt = self._signature(pid)
+                ckpt.save(sig)
+                ckpt.close()
+                self._saved[pid] = sig.logodds
+        self.state.save(shell.checkpoint())
+        for pid in set(self._saved) - set(sigs):
+            self._signature(pid).remove()
+            del self._saved[pid]
+
+    def record(self, links: list[LinkMeasured]) -> None:
+        """Append ``links`` to the links log (one write: a killed process leaves whole lines)."""
+        if self._links_log is not None and links:
+            with open(self._links_log, "ab") as f:
+                f.write(b"".join(self._link_enc.encode(lk) + b"\n" for lk in links))
+
+    def recorded(self) -> list[LinkMeasured]:
+        """The latest measurement of each link in the log (a line cut short by a kill is skipped)."""
+        if self._links_log is None or not self._links_log.exists():
+            return []
+        return read_links_log(self._links_log)
+
+
+def read_links_log(path: str | Path) -> list[LinkMeasured]:
+    """The latest measurement of each link (pair of places) in a recognizer's links log."""
+    dec = msgspec.json.Decoder(LinkMeasured)
+    latest: dict[tuple[int, int], LinkMeasured] = {}
+    for line in Path(path).read_bytes().splitlines():
+        try:
+            lk = dec.decode(line)
+        except msgspec.DecodeError:
+            log.warning("%s: skipping a line that is not a link: %r", path, line[:80])
+            continue
+        latest[(min(lk.from_id, lk.to_id), max(lk.from_id, lk.to_id))] = lk
+    return list(latest.values())
 
 
 class RecognizerShell:
@@ -75,8 +174,10 @@ class RecognizerShell:
     """
 
     def __init__(self, params: PlaceRecognizerNodeParams,
-                 publish_belief, publish_link, clock=time.monotonic) -> None:  # publish: one message each
-        self.params = params
+                 publish_belief, publish_link, clock=time.monotonic, files: RecognizerFiles | None = None) -> None:
+        self.params = params  # publish_belief, publish_link: one message each
+        self._files = files or RecognizerFiles(None, None)
+        self._applied: set[int] = set()  # places confirmed (id) or deleted (-1 - id) already applied
         self.core = PlaceRecognizer(params.core)
         self._publish_belief = publish_belief
         self._publish_link = publish_link
@@ -92,8 +193,9 @@ class RecognizerShell:
         self._link_seq = 0
         self.counts = {"scans": 0, "localised": 0, "links": 0, "places": 0, "deleted": 0, "map_updates": 0,
                        "dropped_scans": 0, "unpaired_scans": 0, "late_events": 0, "repeated_scans": 0,
-                       "order_timeouts": 0}
+                       "order_timeouts": 0, "repeated_events": 0, "resent_links": 0}
         self._last_scan_seq = -1
+        self._last_belief: LocalizationBelief | None = None  # published for the scan of _last_scan_seq
         self.latest_stamp = -math.inf
 
     def _tick(self, stamp: float) -> int:
@@ -115,6 +217,30 @@ class RecognizerShell:
         log.info("%s: continuing %d places (%d signatures), %d links; robot last at place %d", SERVICE,
                  len(places), len(scans), len(links), at.place_id)
 
+    def checkpoint(self) -> RecognizerCheckpoint:
+        n = self.params.checkpoint_poses
+        return RecognizerCheckpoint(
+            core=self.core.snapshot(), poses=list(self._poses)[-n:], applied=sorted(self._applied),
+            cmd_tick=self._cmd_tick, sensor_tick=self._sensor_tick, done_tick=self._done_tick,
+            belief_seq=self._belief_seq, link_seq=self._link_seq, last_scan_seq=self._last_scan_seq,
+            latest_stamp=self.latest_stamp, counts=dict(self.counts))
+
+    def resume(self, ckpt: RecognizerCheckpoint, signatures: dict[int, PlaceSignature]) -> None:
+        """Go on from a checkpoint: its places, signatures, belief and links in progress."""
+        self.core.restore_snapshot(ckpt.core, signatures)
+        self._poses = deque(ckpt.poses)
+        self._stamps = deque(p.stamp for p in ckpt.poses)
+        self._applied = set(ckpt.applied)
+        self._cmd_tick, self._sensor_tick, self._done_tick = ckpt.cmd_tick, ckpt.sensor_tick, ckpt.done_tick
+        self._belief_seq, self._link_seq, self._last_scan_seq = ckpt.belief_seq, ckpt.link_seq, ckpt.last_scan_seq
+        self.latest_stamp = ckpt.latest_stamp
+        self.counts.update(ckpt.counts)
+
+    def _commit(self, links: list[LinkMeasured]) -> None:
+        """Before anything of an applied input is published: the links into the log, then the state."""
+        self._files.record(links)
+        self._files.save(self)
+
     # -- inputs ---------------------------------------------------------------------------------
     def on_dr_pose(self, msg: DeadReckonedPose) -> None:
         if self._stamps and msg.stamp < self._stamps[-1]:
@@ -133,6 +259,9 @@ class RecognizerShell:
     def on_sonar(self, msg: SonarScan) -> None:
         if msg.seq <= self._last_scan_seq or any(s.seq == msg.seq for s, _ in self._scans):
             self.counts["repeated_scans"] += 1  # the simulator repeats tick 0 until it starts
+            last = self._last_belief
+            if last is not None and msg.seq == self._last_scan_seq and last.stamp == msg.stamp:
+                self._publish_belief(last)  # so does its localization, for a subscriber that came late
             return
         bisect.insort(self._scans, (msg, self._clock()), key=lambda e: e[0].stamp)
         if len(self._scans) > self.params.max_pending_scans:
@@ -149,12 +278,20 @@ class RecognizerShell:
         self.drain()
 
     def on_explorer_event(self, msg: PlaceConfirmed | PlaceDeleted) -> None:
+        key = self._event_key(msg)
+        if key in self._applied or any(self._event_key(e) == key for e, _ in self._events):
+            self.counts["repeated_events"] += 1  # history heard again after a restart
+            return
         if self._tick(msg.stamp) < self._done_tick:
             self.counts["late_events"] += 1  # a scan after it was processed already: apply it now
             self._apply_event(msg)
             return
         self._events.append((msg, self._clock()))
         self.drain()
+
+    @staticmethod
+    def _event_key(msg: PlaceConfirmed | PlaceDeleted) -> int:
+        return msg.place_id if isinstance(msg, PlaceConfirmed) else -1 - msg.place_id
 
     def on_map_update(self, msg: MapUpdate) -> None:
         self.counts["map_updates"] += 1
@@ -208,17 +345,24 @@ class RecognizerShell:
         self.counts["scans"] += 1
         loc = out.localization
         self.counts["localised"] += loc.place_id >= 0
-        self._publish_belief(LocalizationBelief(
+        belief = LocalizationBelief(
             stamp=scan.stamp, seq=self._belief_seq, place_id=loc.place_id, probability=loc.probability,
             offset_x_m=loc.offset_x_m, offset_y_m=loc.offset_y_m, offset_var_m2=loc.offset_var_m2,
-            hypotheses=[Hypothesis(place_id=i, probability=p) for i, p in loc.hypotheses]))
+            hypotheses=[Hypothesis(place_id=i, probability=p) for i, p in loc.hypotheses])
         self._belief_seq += 1
-        self._links(out, scan.stamp)
+        self._last_belief = belief
+        links = self._links(out, scan.stamp)
+        self._commit(links)
+        self._publish_belief(belief)
+        for link in links:
+            self._publish_link(link)
 
     def _apply_event(self, ev: PlaceConfirmed | PlaceDeleted) -> None:
         if isinstance(ev, PlaceDeleted):
             self.core.remove_place(ev.place_id)
             self.counts["deleted"] += 1
+            self._applied.add(self._event_key(ev))
+            self._commit([])
             return
         dr = self._pose_at(ev.stamp)
         if dr is None:
@@ -226,13 +370,31 @@ class RecognizerShell:
         if dr is None:
             return
         self.counts["places"] += 1
-        self._links(self.core.add_place(ev.place_id, ev.x_m, ev.y_m, dr), ev.stamp)
+        self._applied.add(self._event_key(ev))
+        links = self._links(self.core.add_place(ev.place_id, ev.x_m, ev.y_m, dr), ev.stamp)
+        self._commit(links)
+        for link in links:
+            self._publish_link(link)
 
-    def _links(self, out: RecognizerOutput, stamp: float) -> None:
+    def _links(self, out: RecognizerOutput, stamp: float) -> list[LinkMeasured]:
+        links = []
         for link in out.links:
-            self._publish_link(LinkMeasured(stamp=stamp, seq=self._link_seq, **asdict(link)))
+            links.append(LinkMeasured(stamp=stamp, seq=self._link_seq, **asdict(link)))
             self._link_seq += 1
             self.counts["links"] += 1
+        return links
+
+    def resend_recorded(self) -> int:
+        """Publish again the latest measurement of every link in the links log; returns how many.
+
+        After a restart: a link the killed process logged may not have left it. Receivers take a
+        measurement they hold already as a repeat (the relaxer compares it with the one it holds).
+        """
+        links = self._files.recorded()
+        for link in links:
+            self._publish_link(link)
+        self.counts["resent_links"] += len(links)
+        return len(links)
 
 
 def run(session: zenoh.Session, params: PlaceRecognizerNodeParams = PlaceRecognizerNodeParams(), *,
@@ -242,9 +404,16 @@ def run(session: zenoh.Session, params: PlaceRecognizerNodeParams = PlaceRecogni
     with Node(session, SERVICE, robot=robot) as node:
         pub_belief = node.publisher(topics.localization(robot), LocalizationBelief)
         pub_link = node.publisher(topics.links_measured(robot), LinkMeasured, history=topics.MAP_EVENT_HISTORY)
-        shell = RecognizerShell(params, pub_belief.put, pub_link.put)
-        if params.resume:
+        files = RecognizerFiles(params.state_path, params.links_log)
+        shell = RecognizerShell(params, pub_belief.put, pub_link.put, files=files)
+        saved = files.load()
+        if saved is not None:  # a restart within the run: the checkpoint wins over --resume
+            shell.resume(*saved)
+            log.info("%s: resumed with %d places from %s", SERVICE, shell.core.belief.ids.size, params.state_path)
+        elif params.resume:
             shell.restore(fetch_saved_map(session, robot, near_m=params.resume_near_m, at=params.resume_at))
+        if shell.resend_recorded():
+            log.info("%s: %d links of the links log published again", SERVICE, shell.counts["resent_links"])
 
         def update_detail() -> None:
             node.detail.update(shell.counts)
@@ -266,6 +435,13 @@ def run(session: zenoh.Session, params: PlaceRecognizerNodeParams = PlaceRecogni
         node.subscribe(topics.cmd_velocity(robot), VelocityCommand, shell.on_command)
         node.subscribe(topics.places_confirmed(robot), PlaceConfirmed, shell.on_explorer_event)
         node.subscribe(topics.places_deleted(robot), PlaceDeleted, shell.on_explorer_event)
+        if saved is not None:
+            # resumed: the explorer's history brings the place events sent while this process was away
+            # (an event heard on both subscribers is applied once). Only then: a history subscriber may
+            # hand over an event after the velocity command the explorer sent after it, and the order
+            # of events and scans (above) would no longer be the explorer's.
+            node.subscribe(topics.places_confirmed(robot), PlaceConfirmed, shell.on_explorer_event, history=True)
+            node.subscribe(topics.places_deleted(robot), PlaceDeleted, shell.on_explorer_event, history=True)
         node.subscribe(topics.map_update(robot), MapUpdate, shell.on_map_update)
         update_detail()
         wall_end = time.monotonic() + params.duration_s if params.duration_s else math.inf
@@ -295,11 +471,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="stop after the pose that reaches this simulated time")
     parser.add_argument("--duration-s", type=positive_float, default=None, help="stop after this wall time")
     add_resume_arguments(parser)
+    parser.add_argument("--order-timeout-s", type=positive_float, default=0.5,
+                        help="wall time an input waits for the inputs that must come first (default 0.5)")
+    parser.add_argument("--state", metavar="PATH", default=None,
+                        help="checkpoint file (and PATH.signatures/): a restarted process resumes from it")
+    parser.add_argument("--links-log", metavar="PATH", default=None,
+                        help="append every link measured to this file (JSON lines) before publishing it; "
+                             "a restarted process publishes the latest of each again")
 
 
 def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.Event) -> None:
     """What ``python -m services.place_recognizer`` runs once the session is open."""
     run(session, PlaceRecognizerNodeParams(follow_map=not args.no_follow_map, max_sim_time_s=args.max_sim_time,
-                                           duration_s=args.duration_s, resume=args.resume,
+                                           duration_s=args.duration_s, order_timeout_s=args.order_timeout_s,
+                                           state_path=args.state, links_log=args.links_log, resume=args.resume,
                                            resume_at=robot_at_from_args(args)),
         robot=args.robot, stop=stop)

@@ -9,6 +9,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 
+import msgspec
 import numpy as np
 import zenoh
 
@@ -22,11 +23,22 @@ from services.runtime import (
     nonnegative_int,
     positive_float,
 )
+from services.runtime.checkpoint import Checkpoint, CheckpointError
 from services.sensor_sim import core
 from sim.world import World, WorldError, load_world
 
 SERVICE = "sensor_sim"
 log = logging.getLogger("relaxmap.sensor_sim")
+
+
+class SimCheckpoint(msgspec.Struct, frozen=True):
+    """What a restarted simulator needs to go on: the state, the frame of that tick, the generator."""
+
+    world: str  # the world's name: a checkpoint of another world is refused
+    seed: int
+    state: core.SimState
+    frame: core.Frame  # published again on resumption (its command is the one awaited)
+    rng_state: bytes  # numpy's bit generator state, JSON (its integers exceed 64 bits)
 
 
 @dataclass(frozen=True)
@@ -43,6 +55,7 @@ class SensorSimNodeParams:
     wait_for: tuple[str, ...] = ()  # services that must be alive (liveliness) before the run starts
     start_pose: tuple[float, float, float] | None = None  # true pose at the first tick (None: the world's start)
     start_tick: int = 0  # the first tick (a run that continues a saved one starts at its last tick)
+    state_path: str | None = None  # checkpoint: saved every tick, resumed from when the process restarts
     sim: core.SensorSimParams = field(default_factory=core.SensorSimParams)  # the simulation itself
 
 
@@ -77,7 +90,19 @@ def _simulate(node: Node, model: core.SimModel, params: SensorSimNodeParams, cmd
     # a continued run draws from a generator of its own: seeded by the seed and the tick it starts at
     rng = np.random.default_rng(params.seed if params.start_tick == 0 else (params.seed, params.start_tick))
     dt = params.sim.dt_s
-    state, frame = core.start(model, rng, pose=params.start_pose, tick=params.start_tick)
+    ckpt = Checkpoint(params.state_path, SimCheckpoint) if params.state_path else None
+    saved = ckpt.load() if ckpt else None
+    if saved is not None:
+        if (saved.world, saved.seed) != (model.world.name, params.seed):
+            raise CheckpointError(f"{params.state_path} holds world {saved.world!r} seed {saved.seed}, "
+                                  f"not {model.world.name!r} seed {params.seed}")
+        state, frame = saved.state, saved.frame
+        rng.bit_generator.state = msgspec.json.decode(saved.rng_state)
+        cmds.started, cmds.tick = True, state.tick
+        log.info("%s: resumed at tick %d from %s", SERVICE, state.tick, params.state_path)
+        out.publish(frame)  # again: the killed process may have died before publishing all of it
+    else:
+        state, frame = core.start(model, rng, pose=params.start_pose, tick=params.start_tick)
     node.announce()
     wall_end = time.monotonic() + params.duration_s if params.duration_s else math.inf
     log.info("%s: world %s, seed %d, %s, tick %d, waiting for the first command on %s", SERVICE,
@@ -95,15 +120,19 @@ def _simulate(node: Node, model: core.SimModel, params: SensorSimNodeParams, cmd
 
     # tick 0 goes out once every awaited service is alive, i.e. subscribed: what one of them answers to
     # it (the recognizer's localization of the first scan) then reaches the others (the explorer)
-    while not stop.is_set() and time.monotonic() < wall_end and not all_alive():
+    while not stop.is_set() and time.monotonic() < wall_end and saved is None and not all_alive():
         node.spin_once(0.05)
-    while not stop.is_set() and time.monotonic() < wall_end and not ready():
+    while not stop.is_set() and time.monotonic() < wall_end and saved is None and not ready():
         out.publish(frame)
         deadline = time.monotonic() + params.start_repeat_s
         while not ready() and not stop.is_set() and (now := time.monotonic()) < deadline:
             node.spin_once(deadline - now)
     if watcher is not None:
         watcher.close()
+        if saved is None and ready():
+            # once more: a service declares its token after its subscribers, so every awaited one
+            # hears this frame, even one that became alive just after the last repeat
+            out.publish(frame)
     t_run = time.monotonic()
     node.detail["started"] = 1
     last_cmd_wall = time.monotonic()
@@ -136,6 +165,9 @@ def _simulate(node: Node, model: core.SimModel, params: SensorSimNodeParams, cmd
             cmd = cmds.latest if fresh else (0.0, 0.0)
         state, frame = core.step(state, cmd, model, rng)
         cmds.tick = state.tick
+        if ckpt is not None:  # before publishing: whoever heard of a tick finds it in the checkpoint
+            ckpt.save(SimCheckpoint(world=model.world.name, seed=params.seed, state=state, frame=frame,
+                                    rng_state=msgspec.json.encode(rng.bit_generator.state)))
         # health first: whoever has seen a tick's messages finds health at least that far
         _update_detail(node, state, cmds, dt, time.monotonic() - t_run)
         out.publish(frame)
@@ -251,6 +283,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-sim-time", type=positive_float, default=None, metavar="S",
                         help="end the run at this simulated time (seconds)")
     parser.add_argument("--duration-s", type=positive_float, default=None, help="end the run after this wall time")
+    parser.add_argument("--state", metavar="PATH", default=None,
+                        help="checkpoint file: saved every tick; a restarted process resumes from it")
     parser.add_argument("--wait-for", action="append", default=[], metavar="SERVICE",
                         help="do not start before SERVICE is alive on the bus (repeatable)")
     parser.add_argument("--start-pose", type=finite_float, nargs=3, default=None, metavar=("X", "Y", "HEADING"),
@@ -266,7 +300,7 @@ def params_from_args(args: argparse.Namespace) -> SensorSimNodeParams:
                                lockstep_timeout_s=args.lockstep_timeout_s, max_sim_time_s=args.max_sim_time,
                                duration_s=args.duration_s, wait_for=tuple(args.wait_for),
                                start_pose=tuple(args.start_pose) if args.start_pose else None,
-                               start_tick=args.start_tick, sim=sim)
+                               start_tick=args.start_tick, state_path=args.state, sim=sim)
 
 
 def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.Event) -> None:

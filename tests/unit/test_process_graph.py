@@ -28,10 +28,10 @@ def test_shipped_graph_is_sound():
     args = {s.name: expand_args(s, values) for s in graph.services}
     assert args["relaxer"] == ["--store", "/o/map.sqlite", "--seed", "3"]
     assert args["recorder"] == ["--rrd", "/o/r.rrd", "--recording-id", "id"]
-    assert args["explorer"] == ["--seed", "3"]
+    assert args["explorer"] == ["--seed", "3", "--state", "/o/state/explorer"]
     values["resume_explorer"] = ["--resume", "--first-place-id", "7"]
     assert expand_args(next(s for s in graph.services if s.name == "explorer"), values) == [
-        "--seed", "3", "--resume", "--first-place-id", "7"]
+        "--seed", "3", "--state", "/o/state/explorer", "--resume", "--first-place-id", "7"]
 
 
 def _graph(services) -> ProcessGraph:
