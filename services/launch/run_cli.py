@@ -22,7 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="continue the run saved in DIR (its map, robot, world and seed); outputs go to DIR")
     parser.add_argument("--viewer", action="store_true", help="spawn the Rerun viewer as well")
     parser.add_argument("--headless", action="store_true", help="no progress bar (log lines instead)")
-    parser.add_argument("--max-sim-time", type=float, default=3600.0, metavar="S",
+    parser.add_argument("--max-sim-time", type=float, default=10800.0, metavar="S",
                         help="stop after this many simulated seconds if exploration has not ended")
     parser.add_argument("--graph", help="process graph file (default: deploy/graph.json)")
     parser.add_argument("--port", type=int, default=7447,
