@@ -97,13 +97,13 @@ def match_axis(observed: np.ndarray, stored: np.ndarray, max_shift: int) -> Axis
     stored = np.asarray(stored, dtype=float)
     n = observed.shape[-1]
     pad = [(0, 0)] * (stored.ndim - 1) + [(max_shift, max_shift)]
-    padded = np.pad(stored, pad, constant_values=np.nan)
+    padded = np.pad(stored, pad)  # missing elements are zero: they add nothing to the minima
     windows = sliding_window_view(padded, n, axis=-1)  # (..., 3, 2S+1, n): element j + s
-    valid = ~np.isnan(windows[..., 0, :, :])  # (..., 2S+1, n)
-    mins = np.minimum(observed[:, None, :], np.nan_to_num(windows, nan=0.0)).sum(axis=-3)
-    num = np.where(valid, mins, 0.0).sum(axis=-1)
+    j_plus_s = np.arange(n)[None, :] + np.arange(-max_shift, max_shift + 1)[:, None]
+    valid = (j_plus_s >= 0) & (j_plus_s < n)  # (2S+1, n): where stored element j + s exists
+    num = np.minimum(observed[:, None, :], windows).sum(axis=(-3, -1))
     totals_obs = observed.sum(axis=0)  # (n,)
-    totals_st = np.nan_to_num(windows, nan=0.0).sum(axis=-3)  # (..., 2S+1, n)
+    totals_st = windows.sum(axis=-3)  # (..., 2S+1, n)
     den = np.where(valid, np.maximum(totals_obs, totals_st), 0.0).sum(axis=-1)
     scores = np.divide(num, den, out=np.zeros_like(num), where=den > 0)
     shifts = np.arange(-max_shift, max_shift + 1)
