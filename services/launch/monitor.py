@@ -99,6 +99,8 @@ class RunMonitor:
         self._truth_tick: list[int] = []
         self._last_dr: DeadReckonedPose | None = None
         self._dr_recent: deque[tuple[float, float, float]] = deque(maxlen=DR_HISTORY)  # stamp, x, y
+        self._dr_t: list[float] = []  # every compass dead-reckoned position, by stamp
+        self._dr_xy: list[tuple[float, float]] = []
         self._last_fix: LocalizationBelief | None = None
         self.max_place_id = -1  # the highest place id heard of (predicted, confirmed or deleted)
         self._saved_truth: dict[int, tuple[float, float]] = {}  # places of earlier parts of the run
@@ -151,6 +153,9 @@ class RunMonitor:
         if self._last_dr is None or msg.stamp >= self._last_dr.stamp:
             self._last_dr = msg
             self._dr_recent.append((msg.stamp, msg.compass.x_m, msg.compass.y_m))
+        i = bisect.bisect(self._dr_t, msg.stamp)
+        self._dr_t.insert(i, msg.stamp)
+        self._dr_xy.insert(i, (msg.compass.x_m, msg.compass.y_m))
 
     def _on_localization(self, msg: LocalizationBelief) -> None:
         if msg.place_id >= 0 and (self._last_fix is None or msg.stamp >= self._last_fix.stamp):
@@ -237,10 +242,15 @@ class RunMonitor:
         return min(max(bisect.bisect(self._truth_t, stamp + 1e-9) - 1, 0), len(self._truth_t) - 1)
 
     def place_dead_reckoning(self) -> dict[int, tuple[float, float]]:
-        """Coordinates of every confirmed place as first confirmed (compass dead reckoning)."""
+        """Where compass dead reckoning alone put every confirmed place: the dead-reckoned position at
+        its confirmation stamp (the map of dead reckoning, as ``grid_dead_reckoning.png`` draws it)."""
         with self._lock:
             out = {pid: xy for pid, xy in self._saved_dr.items() if pid not in self.deleted_places}
-            out.update((pid, (m.x_m, m.y_m)) for pid, m in self.confirmed.items() if pid not in self.deleted_places)
+            for pid, msg in self.confirmed.items():
+                if pid in self.deleted_places or not self._dr_t:
+                    continue
+                i = min(max(bisect.bisect(self._dr_t, msg.stamp + 1e-9) - 1, 0), len(self._dr_t) - 1)
+                out[pid] = self._dr_xy[i]
             return out
 
     def links_lost(self, in_map: set[tuple[int, int]]) -> set[tuple[int, int]]:
