@@ -21,6 +21,8 @@ from tests.conftest import REPO
 
 SEED = 3
 MAX_SIM_TIME_S = 60
+# a launcher gives its services 10 s to stop before it kills them, then exits: wait longer than that
+LAUNCHER_STOP_S = 30.0
 PORT = 7447
 XY_TOLERANCE_M = 0.05  # the relaxer takes events from different topics in arrival order: sweeps differ a little
 
@@ -150,10 +152,10 @@ def test_relaxer_on_another_host_makes_the_same_map(hosts, processes, tmp_path):
                              "--out", str(robot_out), "--max-sim-time", str(MAX_SIM_TIME_S),
                              "--start-timeout-s", "120", *common)
     assert robot.wait(300) == 0, robot_log.read_text()[-3000:]
-    assert processes.stop(relaxer) == 0, relaxer_log.read_text()[-3000:]
+    assert processes.stop(relaxer, timeout_s=LAUNCHER_STOP_S) == 0, relaxer_log.read_text()[-3000:]
     assert "serving relaxer on tcp/10.77.1.1" in relaxer_log.read_text()
     for proc in (edge, router):
-        assert processes.stop(proc) == 0
+        assert processes.stop(proc, timeout_s=LAUNCHER_STOP_S) == 0
     # every service came through the routers: the relaxer ran (and stored the map) on its own host only
     assert (relaxer_out / "map.sqlite").is_file() and not (robot_out / "map.sqlite").exists()
     assert sorted(p.name for p in (robot_out / "logs").iterdir()) == [
@@ -193,7 +195,7 @@ def secure_hosts(tmp_path, processes):
                                  cwd=homes["router"], stdout=f, stderr=subprocess.STDOUT)
     _wait_for_line(log, "up (", router, 30)
     yield homes, endpoint
-    assert processes.stop(router) == 0
+    assert processes.stop(router, timeout_s=LAUNCHER_STOP_S) == 0
 
 
 def _secure_run(processes, home: Path, endpoint: str, out: str, *args: str) -> tuple[subprocess.Popen, Path]:
@@ -213,7 +215,7 @@ def test_tls_and_access_control_let_the_whole_run_through(secure_hosts, processe
     robot, robot_log = _secure_run(processes, homes["robot"], endpoint, "out", "--skip", "relaxer", "--max-sim-time", "30",
                                    "--start-timeout-s", "120")
     assert robot.wait(300) == 0, robot_log.read_text()[-3000:]
-    assert processes.stop(relaxer) == 0, relaxer_log.read_text()[-3000:]
+    assert processes.stop(relaxer, timeout_s=LAUNCHER_STOP_S) == 0, relaxer_log.read_text()[-3000:]
     summary = json.loads((homes["robot"] / "out" / "summary.json").read_text())
     assert summary["places"] >= 5 and summary["links_lost"] == 0, summary
     assert (homes["robot"] / "out" / "grid.png").is_file()
@@ -226,7 +228,7 @@ def test_a_relaxer_without_the_relaxer_certificate_is_not_heard(secure_hosts, pr
     robot, robot_log = _secure_run(processes, homes["robot"], endpoint, "out", "--skip", "relaxer", "--max-sim-time", "10",
                                    "--start-timeout-s", "120", "--settle-timeout-s", "3")
     assert robot.wait(300) == 1, robot_log.read_text()[-3000:]
-    assert processes.stop(relaxer) == 0, relaxer_log.read_text()[-3000:]
+    assert processes.stop(relaxer, timeout_s=LAUNCHER_STOP_S) == 0, relaxer_log.read_text()[-3000:]
     text = robot_log.read_text()
     assert "all 6 services alive" in text and "the relaxer does not answer relaxmap/robot0/map/stats" in text, \
         text[-3000:]
