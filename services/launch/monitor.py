@@ -5,7 +5,6 @@ from __future__ import annotations
 import bisect
 import threading
 import time
-from collections import deque
 
 import msgspec
 import zenoh
@@ -27,7 +26,9 @@ from messages.types import (
 )
 
 
-DR_HISTORY = 4096  # recent dead-reckoned positions kept, to pair the last localization with its own
+def _latest_at(times: list[float], stamp: float) -> int:
+    """Index of the latest of the sorted ``times`` at or before ``stamp`` (the first one if all are later)."""
+    return min(max(bisect.bisect(times, stamp + 1e-9) - 1, 0), len(times) - 1)
 
 
 def _pair(a: int, b: int) -> tuple[int, int]:
@@ -98,7 +99,6 @@ class RunMonitor:
         self._truth_pose: list[tuple[float, float, float]] = []
         self._truth_tick: list[int] = []
         self._last_dr: DeadReckonedPose | None = None
-        self._dr_recent: deque[tuple[float, float, float]] = deque(maxlen=DR_HISTORY)  # stamp, x, y
         self._dr_t: list[float] = []  # every compass dead-reckoned position, by stamp
         self._dr_xy: list[tuple[float, float]] = []
         self._last_fix: LocalizationBelief | None = None
@@ -152,7 +152,6 @@ class RunMonitor:
     def _on_dr(self, msg: DeadReckonedPose) -> None:
         if self._last_dr is None or msg.stamp >= self._last_dr.stamp:
             self._last_dr = msg
-            self._dr_recent.append((msg.stamp, msg.compass.x_m, msg.compass.y_m))
         i = bisect.bisect(self._dr_t, msg.stamp)
         self._dr_t.insert(i, msg.stamp)
         self._dr_xy.insert(i, (msg.compass.x_m, msg.compass.y_m))
@@ -166,11 +165,13 @@ class RunMonitor:
         f = self._last_fix
         if f is None or f.place_id in self.deleted_places:
             return None
-        for stamp, x, y in reversed(self._dr_recent):
-            if abs(stamp - f.stamp) < 1e-6:
-                return PlaceFixState(stamp=f.stamp, place_id=f.place_id, offset_xy=(f.offset_x_m, f.offset_y_m),
-                                     dr_xy=(x, y))
-        return None
+        if not self._dr_t:
+            return None
+        i = _latest_at(self._dr_t, f.stamp)
+        if abs(self._dr_t[i] - f.stamp) >= 1e-6:
+            return None
+        return PlaceFixState(stamp=f.stamp, place_id=f.place_id, offset_xy=(f.offset_x_m, f.offset_y_m),
+                             dr_xy=self._dr_xy[i])
 
     def _on_predicted(self, msg: PlacePredicted) -> None:
         self.max_place_id = max(self.max_place_id, msg.place_id)
@@ -211,7 +212,7 @@ class RunMonitor:
             wall = time.monotonic() - self.started
             return {"sim_time_s": self.sim_time_s, "wall_time_s": wall,
                     "places": up.places if up else 0, "links": up.links if up else 0,
-                    "energy": up.energy if up else float("nan"), "version": up.version if up else 0,
+                    "energy": up.energy if up else float("nan"),
                     "rtf": self.sim_time_s / wall if wall > 0 else 0.0,
                     "complete": bool(self.status and self.status.complete)}
 
@@ -234,12 +235,9 @@ class RunMonitor:
             for pid, msg in self.confirmed.items():
                 if pid in self.deleted_places or not self._truth_t:
                     continue
-                out[pid] = self._truth_pose[self._truth_index(msg.stamp)][:2]
+                out[pid] = self._truth_pose[_latest_at(self._truth_t, msg.stamp)][:2]
             return out
 
-    def _truth_index(self, stamp: float) -> int:
-        """Index of the latest true pose at or before ``stamp`` (the first one if all are later)."""
-        return min(max(bisect.bisect(self._truth_t, stamp + 1e-9) - 1, 0), len(self._truth_t) - 1)
 
     def place_dead_reckoning(self) -> dict[int, tuple[float, float]]:
         """Where compass dead reckoning alone put every confirmed place: the dead-reckoned position at
@@ -249,8 +247,7 @@ class RunMonitor:
             for pid, msg in self.confirmed.items():
                 if pid in self.deleted_places or not self._dr_t:
                     continue
-                i = min(max(bisect.bisect(self._dr_t, msg.stamp + 1e-9) - 1, 0), len(self._dr_t) - 1)
-                out[pid] = self._dr_xy[i]
+                out[pid] = self._dr_xy[_latest_at(self._dr_t, msg.stamp)]
             return out
 
     def links_lost(self, in_map: set[tuple[int, int]]) -> set[tuple[int, int]]:
@@ -266,7 +263,7 @@ class RunMonitor:
             robot = None
             if self._last_dr is not None and self._truth_t:
                 d = self._last_dr
-                i = self._truth_index(d.stamp)
+                i = _latest_at(self._truth_t, d.stamp)
                 robot = RobotState(
                     stamp=d.stamp, tick=self._truth_tick[i], truth=self._truth_pose[i],
                     dr_xy=(d.compass.x_m, d.compass.y_m),
