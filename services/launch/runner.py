@@ -20,7 +20,9 @@ from messages.types import MapStats
 from services.launch.graph import GraphError, ProcessGraph, load_graph
 from services.launch.monitor import RunMonitor
 from services.launch.resume import (
+    RUN_FILE,
     RUN_FORMAT,
+    STORE_FILE,
     ResumeError,
     RunRecord,
     read_run_record,
@@ -103,15 +105,11 @@ def plan_run(args: argparse.Namespace) -> RunPlan:
         raise RunError(f"cannot resume: the saved run is at {saved.sim_time_s:.1f} simulated seconds already; "
                        f"--max-sim-time ({args.max_sim_time:g}) must go beyond it")
     world_ref = saved.world_ref
-    if world_ref not in builtin_world_names() and not Path(world_ref).is_file():
-        raise RunError(f"cannot resume: the saved run's world file {world_ref} is gone")
-    return RunPlan(out=out, world=saved.world, world_ref=world_ref, seed=saved.seed, saved=saved)
-
-
-def builtin_world_names() -> list[str]:
     from sim.world import builtin_worlds
 
-    return list(builtin_worlds())
+    if world_ref not in builtin_worlds() and not Path(world_ref).is_file():
+        raise RunError(f"cannot resume: the saved run's world file {world_ref} is gone")
+    return RunPlan(out=out, world=saved.world, world_ref=world_ref, seed=saved.seed, saved=saved)
 
 
 def _number(value: float) -> str:
@@ -191,7 +189,7 @@ def run(args: argparse.Namespace) -> int:
     console = Console(stderr=True, log_path=False)
     plan = plan_run(args)
     out = plan.out
-    held = [name for name in ("run.json", "map.sqlite", "state") if (out / name).exists()]
+    held = [name for name in (RUN_FILE, STORE_FILE, "state") if (out / name).exists()]
     if plan.saved is None and held:
         raise RunError(f"{out} holds a run ({', '.join(held)}): continue it with --resume {out}, or give the "
                        "new run another --out")

@@ -39,7 +39,7 @@ from services.place_recognizer.core import (
 )
 from services.place_recognizer.grid import PlacedScan
 from services.runtime import Node, positive_float
-from services.runtime.checkpoint import Checkpoint
+from services.runtime.checkpoint import Checkpoint, EventLog
 from services.runtime.saved_map import (
     RobotAt,
     SavedMap,
@@ -95,8 +95,7 @@ class RecognizerFiles:
         self.state = Checkpoint(state_path, RecognizerCheckpoint) if state_path else None
         self._sig_dir = Path(f"{state_path}.signatures") if state_path else None
         self._saved: dict[int, object] = {}  # place id -> the logodds array saved last
-        self._links_log = Path(links_log) if links_log else None
-        self._link_enc = msgspec.json.Encoder()
+        self._links_log = EventLog(links_log, LinkMeasured) if links_log else None
 
     def _signature(self, place_id: int) -> Checkpoint[PlaceSignature]:
         assert self._sig_dir is not None
@@ -131,28 +130,21 @@ class RecognizerFiles:
 
     def record(self, links: list[LinkMeasured]) -> None:
         """Append ``links`` to the links log (one write: a killed process leaves whole lines)."""
-        if self._links_log is not None and links:
-            with open(self._links_log, "ab") as f:
-                f.write(b"".join(self._link_enc.encode(lk) + b"\n" for lk in links))
+        if self._links_log is not None:
+            self._links_log.append(links)
 
     def recorded(self) -> list[LinkMeasured]:
         """The latest measurement of each link in the log (a line cut short by a kill is skipped)."""
-        if self._links_log is None or not self._links_log.exists():
-            return []
-        return read_links_log(self._links_log)
+        return [] if self._links_log is None else _latest_links(self._links_log.read())
 
 
 def read_links_log(path: str | Path) -> list[LinkMeasured]:
     """The latest measurement of each link (pair of places) in a recognizer's links log."""
-    dec = msgspec.json.Decoder(LinkMeasured)
-    latest: dict[tuple[int, int], LinkMeasured] = {}
-    for line in Path(path).read_bytes().splitlines():
-        try:
-            lk = dec.decode(line)
-        except msgspec.DecodeError:
-            log.warning("%s: skipping a line that is not a link: %r", path, line[:80])
-            continue
-        latest[(min(lk.from_id, lk.to_id), max(lk.from_id, lk.to_id))] = lk
+    return _latest_links(EventLog(path, LinkMeasured).read())
+
+
+def _latest_links(links: list[LinkMeasured]) -> list[LinkMeasured]:
+    latest = {(min(lk.from_id, lk.to_id), max(lk.from_id, lk.to_id)): lk for lk in links}
     return list(latest.values())
 
 

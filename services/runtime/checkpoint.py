@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import struct
 import zlib
@@ -12,6 +13,7 @@ import msgspec
 import numpy as np
 
 T = TypeVar("T")
+log = logging.getLogger(__name__)
 
 
 class CheckpointError(RuntimeError):
@@ -156,5 +158,5 @@ class EventLog(Generic[T]):
             try:
                 out.append(self._decoder.decode(line))
             except msgspec.DecodeError:
-                continue
+                log.warning("%s: skipping a line that is not a logged message: %r", self.path, line[:80])
         return out
