@@ -297,10 +297,8 @@ class PlaceRecognizer:
         p = self.params
         xy = (dr.compass.x_m, dr.compass.y_m)
         near = [s for s, _ in self._scans if np.hypot(s.x_m - xy[0], s.y_m - xy[1]) <= p.signature_radius_m]
-        grid = build_grid(near, xy, half_width_m=p.grid_half_width_m, cell_m=p.cell_m,
-                          logodds_occupied=p.logodds_occupied, logodds_empty=p.logodds_empty,
-                          echo_thickness_m=p.echo_thickness_m)
-        self._signatures[place_id] = PlaceSignature(grid, histograms(classify(grid, p.logodds_threshold)), xy)
+        grid, hist = self._local_grid(near, xy)
+        self._signatures[place_id] = PlaceSignature(grid, hist, xy)
         if place_id in set(self.belief.ids.tolist()):
             self.belief = _belief.remove_place(self.belief, place_id)
         if self._last_xy is None:
@@ -352,10 +350,8 @@ class PlaceRecognizer:
                 continue
             near = [s for s in placed if np.hypot(s.x_m, s.y_m) <= p.signature_radius_m]
             near = near or [min(placed, key=lambda s: np.hypot(s.x_m, s.y_m))]
-            grid = build_grid(near, (0.0, 0.0), half_width_m=p.grid_half_width_m, cell_m=p.cell_m,
-                              logodds_occupied=p.logodds_occupied, logodds_empty=p.logodds_empty,
-                              echo_thickness_m=p.echo_thickness_m)
-            self._signatures[pid] = PlaceSignature(grid, histograms(classify(grid, p.logodds_threshold)), (0.0, 0.0))
+            grid, hist = self._local_grid(near, (0.0, 0.0))
+            self._signatures[pid] = PlaceSignature(grid, hist, (0.0, 0.0))
         for lk in links:
             if lk.from_id in places and lk.to_id in places:
                 w = 1.0 / max(lk.steps, 1)
@@ -473,10 +469,7 @@ class PlaceRecognizer:
                 if int(pid) in self._signatures and self.belief.probs[r] >= p.match_min_prior]
         if not rows or not self._scans:
             return scores, offsets, variances
-        grid = build_grid([s for s, _ in self._scans], xy, half_width_m=p.grid_half_width_m, cell_m=p.cell_m,
-                          logodds_occupied=p.logodds_occupied, logodds_empty=p.logodds_empty,
-                          echo_thickness_m=p.echo_thickness_m)
-        obs = histograms(classify(grid, p.logodds_threshold))
+        _, obs = self._local_grid([s for s, _ in self._scans], xy)
         sx = np.stack([self._signatures[int(self.belief.ids[r])].hist.x for r in rows])
         sy = np.stack([self._signatures[int(self.belief.ids[r])].hist.y for r in rows])
         max_shift = int(round(p.max_shift_m / p.cell_m))
@@ -513,6 +506,14 @@ class PlaceRecognizer:
         return shifts[idx], masked[np.arange(len(rows)), idx]
 
     # --- internals ----------------------------------------------------------------------------
+
+    def _local_grid(self, scans: Sequence[PlacedScan], centre: tuple[float, float]) -> tuple[np.ndarray, Histograms]:
+        """The local occupancy grid of ``scans`` centred on ``centre``, and its histograms."""
+        p = self.params
+        grid = build_grid(scans, centre, half_width_m=p.grid_half_width_m, cell_m=p.cell_m,
+                          logodds_occupied=p.logodds_occupied, logodds_empty=p.logodds_empty,
+                          echo_thickness_m=p.echo_thickness_m)
+        return grid, histograms(classify(grid, p.logodds_threshold))
 
     def _move_belief_to(self, xy: tuple[float, float]) -> None:
         """Move the belief by the dead-reckoned displacement since the last pose it was moved to."""
