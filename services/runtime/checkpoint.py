@@ -20,6 +20,8 @@ class CheckpointError(RuntimeError):
     """A checkpoint file exists but cannot be read as the service's state; the message says which."""
 
 
+# msgspec's hook protocol: a hook raises NotImplementedError for a type it does not handle, and msgspec
+# reports that type as unsupported (both hooks handle every type a checkpoint holds)
 def _enc_hook(obj: Any) -> Any:
     if isinstance(obj, np.ndarray):
         a = np.ascontiguousarray(obj)
