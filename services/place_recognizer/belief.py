@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -62,7 +63,7 @@ def _logsumexp(a: np.ndarray, axis: int) -> np.ndarray:
 
 def predict(belief: Belief, displacement_xy: np.ndarray, *, transition_std_m: float,
             transition_var_per_m_m2: float, place_radius_m: float, uniform_transition: float,
-            unknown_offset_var_m2: float) -> Belief:
+            unknown_offset_var_m2: float, relocalise_std_m: float = math.inf) -> Belief:
     """Move the belief by a dead-reckoned displacement (the prior of the next observation).
 
     Notes
@@ -74,9 +75,13 @@ def predict(belief: Belief, displacement_xy: np.ndarray, *, transition_std_m: fl
     ``s_h^2 = v_h + q |D| + transition_std_m^2``, and to "none" in proportion to
     ``exp(-R^2 / (2 s_h^2))`` (``R = place_radius_m``): "none" acts as a virtual place at distance
     ``R``, so the mass leaves a place when the robot moves beyond its radius. A fraction
-    ``uniform_transition`` of all mass is spread evenly over every place and "none" (relocalisation
-    after a long loop, when dead reckoning and the map disagree by more than the kernel allows);
-    that part carries no position, so it arrives at the centre with ``unknown_offset_var_m2``.
+    ``uniform_transition`` of all mass is spread over the places and "none" (relocalisation after a
+    long loop, when dead reckoning and the map disagree by more than the kernel allows): "none" and
+    each place ``j`` in proportion to ``g_j = exp(-|c_j - m|^2 / (2 s_r^2))``, ``m`` the expected
+    robot position of the moved belief and ``s_r = relocalise_std_m`` (``g = 1`` for "none"; an
+    infinite ``s_r`` spreads it evenly). Dead reckoning with a compass errs by a metre or two around a
+    loop, not by ten: a look-alike place across the building gets no mass to jump to. That part
+    carries no position, so it arrives at the centre with ``unknown_offset_var_m2``.
     The offsets of each target (and the "none" position) are the moment-matched mixture of what
     arrives (mean and variance per axis).
     """
@@ -95,14 +100,20 @@ def predict(belief: Belief, displacement_xy: np.ndarray, *, transition_std_m: fl
     )  # (S, P + 1): last column is "none"
     trans = np.exp(log_k - _logsumexp(log_k, axis=1)[:, None])
     informed = (1.0 - uniform_transition) * ps[:, None] * trans  # (S, P + 1)
-    uniform = uniform_transition * ps.sum() / (P + 1)
+    g = np.ones(P + 1)
+    if math.isfinite(relocalise_std_m) and P:
+        expected = (ps[:, None] * pos).sum(axis=0) / max(ps.sum(), 1e-300)
+        g[:P] = np.exp(-((belief.centres - expected) ** 2).sum(axis=1) / (2.0 * relocalise_std_m**2))
+    uniform = uniform_transition * ps.sum() * g / g.sum()  # (P + 1,)
     prior = informed.sum(axis=0) + uniform  # (P + 1,)
 
     w = informed[:, :P]  # (S, P)
-    tot = prior[:P]
-    mean = np.einsum("sp,spk->pk", w, diff) / tot[:, None]
-    second = (np.einsum("sp,spk->pk", w, src_var[:, None, :] + diff**2)
-              + uniform * unknown_offset_var_m2) / tot[:, None]
+    tot = prior[:P, None]
+    some = tot > 0.0  # a place no mass reaches (far from every hypothesis) keeps an unknown offset
+    mean = np.divide(np.einsum("sp,spk->pk", w, diff), tot, out=np.zeros((P, 2)), where=some)
+    second = np.divide(np.einsum("sp,spk->pk", w, src_var[:, None, :] + diff**2)
+                       + uniform[:P, None] * unknown_offset_var_m2, tot,
+                       out=np.full((P, 2), unknown_offset_var_m2), where=some)
     var = np.maximum(second - mean**2, 0.0)
 
     wn = informed[:, P]

@@ -37,8 +37,9 @@ class PlaceRecognizerParams:
     localized_probability: float = 0.5  # the best place must be at least this probable to count
     transition_std_m: float = 0.1  # width of the motion kernel on top of the position variance
     transition_var_per_m_m2: float = 0.02  # dead-reckoning position variance added per metre travelled
-    uniform_transition: float = 1e-3  # fraction of belief mass spread evenly per update (relocalisation)
+    uniform_transition: float = 1e-4  # fraction of belief mass spread per update near the robot (relocalisation)
     unknown_offset_var_m2: float = 0.25  # offset variance of mass arriving without a position
+    relocalise_std_m: float = 1.5  # relocalisation mass goes to places within about this of the robot
     match_sharpness: float = 40.0  # beta: likelihood exp(beta (M - 1)) of a match score M
     new_place_match: float = 0.9  # virtual match score of the "no known place" hypothesis
     confirmed_probability: float = 0.95  # belief in a place at the moment it is confirmed
@@ -524,6 +525,7 @@ class PlaceRecognizer:
             self.belief, move, transition_std_m=p.transition_std_m,
             transition_var_per_m_m2=p.transition_var_per_m_m2, place_radius_m=p.place_radius_m,
             uniform_transition=p.uniform_transition, unknown_offset_var_m2=p.unknown_offset_var_m2,
+            relocalise_std_m=p.relocalise_std_m,
         )
 
     def _remember_scan(self, scan: PlacedScan, path_m: float) -> None:

@@ -56,6 +56,27 @@ def test_far_from_every_place_the_mass_goes_to_none():
     np.testing.assert_allclose(moved.none_xy, [5.0, 1.0])
 
 
+def test_relocalisation_mass_goes_to_places_near_the_robot_not_across_the_building():
+    """The relocalising fraction is weighted by exp(-|c_j - m|^2 / (2 s_r^2)) around the expected robot
+    position m; with an infinite s_r it is spread evenly over every place and "none"."""
+    b = B.add_place(B.Belief.empty(), 0, (0.0, 0.0), probability=1.0)
+    for pid, xy in ((1, (1.5, 0.0)), (2, (10.0, 0.0))):
+        b = B.add_place(b, pid, xy, probability=0.0)
+    b = B.Belief(ids=b.ids, centres=b.centres, probs=np.array([1.0, 0.0, 0.0]), offsets=b.offsets,
+                 offset_vars=b.offset_vars, none_prob=0.0, none_xy=np.zeros(2), none_var_m2=0.0)
+    eps = 1e-3
+    even = B.predict(b, np.zeros(2), **{**MOTION, "uniform_transition": eps})
+    # place 2 is 10 m away: only the even spread reaches it
+    assert even.probs[2] == pytest.approx(eps / 4, rel=1e-6)
+    local = B.predict(b, np.zeros(2), **{**MOTION, "uniform_transition": eps, "relocalise_std_m": 2.0})
+    g = np.array([1.0, math.exp(-1.5**2 / 8.0), math.exp(-100.0 / 8.0), 1.0])
+    assert local.probs[2] == pytest.approx(eps * g[2] / g.sum(), rel=1e-6)
+    assert local.probs[2] < 1e-8 and local.probs[1] > even.probs[1]
+    assert local.probs.sum() + local.none_prob == pytest.approx(1.0)
+    # what arrives without a position has the unknown offset variance
+    assert local.offset_vars[2] == pytest.approx([0.25, 0.25])
+
+
 def test_correct_offset_filter_eqs_22_23():
     b = _one_place(offset=(0.2, -0.1), var=(0.04, 0.01))
     out = B.correct(b, np.array([0.95]), np.array([[0.5, -0.1]]), np.array([[0.04, 0.03]]),
@@ -84,19 +105,21 @@ def test_likelihood_ratio_from_match_scores():
 
 @settings(max_examples=50, deadline=None)
 @given(
-    xs=st.lists(st.floats(-5, 5), min_size=1, max_size=6),
+    xs=st.lists(st.floats(-40, 40), min_size=1, max_size=6),
     dx=st.floats(-2, 2), dy=st.floats(-2, 2),
     eps=st.floats(0.0, 0.1),
+    reloc=st.sampled_from([math.inf, 0.5, 2.0]),
     seed=st.integers(0, 2**31 - 1),
 )
-def test_predict_and_correct_keep_a_distribution(xs, dx, dy, eps, seed):
+def test_predict_and_correct_keep_a_distribution(xs, dx, dy, eps, reloc, seed):
     rng = np.random.default_rng(seed)
     b = B.Belief.empty()
     for i, x in enumerate(xs):
-        b = B.add_place(b, i, (x, rng.uniform(-5, 5)), probability=float(rng.uniform(0.1, 0.9)))
-    b = B.predict(b, np.array([dx, dy]), **{**MOTION, "uniform_transition": eps})
+        # some places hold no mass at all (as far ones do once the kernel has underflowed)
+        b = B.add_place(b, i, (x, rng.uniform(-5, 5)), probability=float(rng.choice([0.0, rng.uniform(0.1, 0.9)])))
+    b = B.predict(b, np.array([dx, dy]), **{**MOTION, "uniform_transition": eps, "relocalise_std_m": reloc})
     assert b.probs.sum() + b.none_prob == pytest.approx(1.0)
-    assert (b.offset_vars >= 0).all()
+    assert (b.offset_vars >= 0).all() and np.isfinite(b.offsets).all() and np.isfinite(b.offset_vars).all()
     b = B.correct(b, rng.uniform(0, 1, len(xs)), rng.normal(size=(len(xs), 2)), np.full((len(xs), 2), 0.1),
                   match_sharpness=40.0, new_place_match=0.9)
     assert b.probs.sum() + b.none_prob == pytest.approx(1.0)
