@@ -48,6 +48,8 @@ class PlaceRecognizerParams:
     max_hypotheses: int = 5  # hypotheses reported in the localization (most probable first)
     match_min_prior: float = 0.0  # places less probable than this before the scan are not matched
     link_map_gate_m: float = 0.75  # a traversal further than this from the centres' displacement is rejected
+    arrival_gate_m: float = 2.5  # an arrival further than this from where dead reckoning puts the robot
+    arrival_gate_per_m: float = 0.05  # ... plus this per metre travelled since the last place is a jump
     match_window_sd: float = 3.0  # a place is matched at shifts within this many standard deviations of
     # its predicted offset (0: at every shift)
 
@@ -192,6 +194,7 @@ class RecognizerState(msgspec.Struct, frozen=True):
     links: list[LinkAccumulator]
     rejected_traversals: int
     signature_ids: list[int]  # the places whose signatures go with this state
+    rejected_arrivals: int = 0
 
 
 class PlaceRecognizer:
@@ -234,6 +237,11 @@ class PlaceRecognizer:
     misrecognition before it is fused (counted in ``rejected_traversals``). The belief itself follows
     those centres, so a recognition that contradicts them by metres is a jump to a look-alike place;
     a missing link costs the relaxer far less than a wrong one.
+
+    Arrival gate: the robot arrives at a place only where dead reckoning from the last place it was at
+    (that place's centre, its offset there, and the dead-reckoned travel since) puts it, within
+    ``arrival_gate_m`` plus ``arrival_gate_per_m`` per metre travelled; a recognition further away is a
+    jump to a look-alike (counted in ``rejected_arrivals``) and the robot stays between places.
     """
 
     def __init__(self, params: PlaceRecognizerParams | None = None) -> None:
@@ -249,6 +257,7 @@ class PlaceRecognizer:
         self._pending: _Pending | None = None
         self._links: dict[frozenset[int], LinkAccumulator] = {}
         self.rejected_traversals = 0  # traversals refused by the fusing gate
+        self.rejected_arrivals = 0  # recognitions refused as jumps (arrival gate)
 
     # --- inputs -------------------------------------------------------------------------------
 
@@ -284,7 +293,8 @@ class PlaceRecognizer:
         valid = scores[~np.isnan(scores)]
         diag = {"best_score": float(valid.max()) if valid.size else float("nan"),
                 "none_prob": self.belief.none_prob, "places": float(self.belief.ids.size),
-                "rejected_traversals": float(self.rejected_traversals)}
+                "rejected_traversals": float(self.rejected_traversals),
+                "rejected_arrivals": float(self.rejected_arrivals)}
         return RecognizerOutput(localization=self.localization(), links=links, diagnostics=diag)
 
     def add_place(self, place_id: int, x_m: float, y_m: float, dr: DeadReckonedPose) -> RecognizerOutput:
@@ -404,7 +414,8 @@ class PlaceRecognizer:
             last_xy=self._last_xy, inside=self._inside, departure=self._departure,
             pending=None if self._pending is None else _Pending(**vars(self._pending)),
             links=[LinkAccumulator(**vars(a)) for a in self._links.values()],
-            rejected_traversals=self.rejected_traversals, signature_ids=list(self._signatures))
+            rejected_traversals=self.rejected_traversals, signature_ids=list(self._signatures),
+            rejected_arrivals=self.rejected_arrivals)
 
     def signatures(self) -> dict[int, PlaceSignature]:
         """Each place's signature; a signature's ``logodds`` is a new array whenever it has grown."""
@@ -422,6 +433,7 @@ class PlaceRecognizer:
         self._inside, self._departure, self._pending = state.inside, state.departure, state.pending
         self._links = {frozenset((a.from_id, a.to_id)): a for a in state.links}
         self.rejected_traversals = state.rejected_traversals
+        self.rejected_arrivals = state.rejected_arrivals
 
     # --- queries ------------------------------------------------------------------------------
 
@@ -563,7 +575,26 @@ class PlaceRecognizer:
                      (float(self.belief.offsets[row, 0]), float(self.belief.offsets[row, 1])))
 
     def _track(self, dr: DeadReckonedPose) -> tuple[LinkEstimate, ...]:
-        return self._arrive_or_leave(self._at_place(), dr, settled_now=False)
+        new = self._at_place()
+        if new not in (NO_PLACE, self.current) and not self._plausible_arrival(new, dr):
+            self.rejected_arrivals += 1
+            new = NO_PLACE
+        return self._arrive_or_leave(new, dr, settled_now=False)
+
+    def _plausible_arrival(self, place_id: int, dr: DeadReckonedPose) -> bool:
+        """Whether the belief's position at ``place_id`` lies near where dead reckoning from the last
+        place puts the robot: within ``arrival_gate_m`` plus ``arrival_gate_per_m`` per metre travelled."""
+        mark, b, p = self._inside, self.belief, self.params
+        if mark is None:
+            return True
+        try:
+            last, new = b.index(mark.place_id), b.index(place_id)
+        except KeyError:
+            return True
+        predicted = b.centres[last] + mark.offset_xy + np.subtract((dr.compass.x_m, dr.compass.y_m), mark.dr_xy)
+        claimed = b.centres[new] + b.offsets[new]
+        gate = p.arrival_gate_m + p.arrival_gate_per_m * max(0.0, dr.path_length_m - mark.path_length_m)
+        return bool(np.hypot(*(claimed - predicted)) <= gate)
 
     def _arrive_or_leave(self, new: int, dr: DeadReckonedPose, *, settled_now: bool) -> tuple[LinkEstimate, ...]:
         links: list[LinkEstimate] = []

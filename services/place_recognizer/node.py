@@ -411,6 +411,7 @@ def run(session: zenoh.Session, params: PlaceRecognizerNodeParams = PlaceRecogni
             node.detail.update(shell.counts)
             node.detail["known_places"] = float(shell.core.belief.ids.size)
             node.detail["rejected_traversals"] = float(shell.core.rejected_traversals)
+            node.detail["rejected_arrivals"] = float(shell.core.rejected_arrivals)
             node.detail["pending_scans"] = float(len(shell._scans))
             node.detail["pending_events"] = float(len(shell._events))
             node.detail["last_stamp_s"] = shell.latest_stamp if math.isfinite(shell.latest_stamp) else 0.0

@@ -142,8 +142,9 @@ def test_long_run_maps_every_measured_link_and_scores_the_map(tmp_path):
     exploration (tests/unit/test_inprocess_runs.py, relaxed places 0.37 m RMS from the truth). Runs of
     ``relaxmap run`` differ with the timing of the relaxed coordinates fed back. Measured (orebro-office,
     seed 0, 1200 simulated s): over six runs on an idle machine ``ate_relaxed_m`` 0.46-1.02 m against
-    compass dead reckoning's 0.50-0.92 m; in two CI runs 2.4 m and 3.3 m, each with one place confirmed
-    after the belief jumped to a place 7-9 m away (issue 6 is open on this; docs/places.md).
+    compass dead reckoning's 0.50-0.92 m; in CI 2.4 m (and 3.3 m before the relocalisation change), each
+    with one place confirmed after the belief jumped to a place 7-9 m away (issue 6 is open on this;
+    docs/places.md).
     """
     out = tmp_path / "run"
     done = _run(out, "--world", "orebro-office", "--seed", "0", "--max-sim-time", f"{LONG_RUN_SIM_S:g}",

@@ -204,3 +204,27 @@ def test_a_restored_recognizer_continues_the_map(drive):
     assert all(link.traversals == 2 and link.steps == 10 for link in again.links)
     with pytest.raises(ValueError, match="without places"):
         rec.restore(drive.places, [], {}, at_place=0, offset_xy=(0.0, 0.0), dr_xy=(0.0, 0.0))
+
+
+def test_a_recognition_far_from_where_dead_reckoning_puts_the_robot_is_a_jump():
+    """Place 0 is confirmed; dead reckoning then says the robot drove 10 m east while the scans come
+    back to place 0 (a look-alike, as far as the recognizer can tell). With relocalisation mass to
+    spare the belief takes place 0; the arrival gate keeps the robot between places instead."""
+    import math
+
+    for gate_m, expect_at_0 in ((math.inf, True), (2.5, False)):
+        rec = PlaceRecognizer(PlaceRecognizerParams(relocalise_std_m=math.inf, uniform_transition=0.05,
+                                                    arrival_gate_m=gate_m))
+        d = _Drive(rec)
+        dr = d.dr(1.5, 1.5)
+        rec.step(dr, scan_at(1.5, 1.5, 0.0, WALLS)[0])
+        rec.add_place(0, 1.5, 1.5, dr)
+        for k in range(1, 51):  # the true path goes 5 m east, dead reckoning says 10 m
+            rec.step(d.dr(1.5 + 0.2 * k, 1.5), scan_at(1.5 + 0.1 * k, 1.5, 0.0, WALLS)[0])
+        at = []
+        for k in range(1, 11):  # back at place 0 for real, dead reckoning 11.5 m east
+            out = rec.step(d.dr(11.5 + 0.01 * k, 1.5), scan_at(1.5, 1.5, 0.0, WALLS)[0])
+            at.append(out.localization.place_id)
+        assert (0 in at) is expect_at_0, at
+        assert int(np.argmax(rec.belief.probs)) == 0  # the belief itself does go there
+        assert (rec.rejected_arrivals > 0) is not expect_at_0
