@@ -36,6 +36,7 @@ class RelaxerParams(msgspec.Struct, frozen=True, kw_only=True):
     seed: int = 0  # seed of the noise estimator's posterior samples
     min_belief_for_scan: float = 0.5  # a sonar scan is kept for the grid when localised this surely
     max_grid_cells: int = 4_000_000  # a grid query that would need more cells is refused
+    settle_after_s: float = 0.2  # wall time without a map event after which the map is solved exactly
     online: OnlineParams = OnlineParams()
 
 
@@ -49,10 +50,12 @@ def run(session: zenoh.Session, params: RelaxerParams, *, robot: str = topics.DE
         log.info("resumed %d places, %d links, version %d from %s", len(stored.places), len(stored.links),
                  stored.version, params.store_path)
     latest: dict[str, object] = {}
+    last_event = [time.monotonic()]
     with Node(session, "relaxer", robot=robot) as node:
         pub = node.publisher(topics.map_update(robot), MapUpdate)
 
         def apply(outcome: CycleOutcome, t0: float) -> None:
+            last_event[0] = time.monotonic()
             store.commit(outcome.tx)
             if outcome.update is not None:
                 pub.put(outcome.update)
@@ -75,6 +78,15 @@ def run(session: zenoh.Session, params: RelaxerParams, *, robot: str = topics.DE
         def on_link_deleted(msg: LinkDeleted) -> None:
             t0 = time.perf_counter()
             apply(core.on_link_deleted(msg.from_id, msg.to_id, msg.stamp), t0)
+
+        def settle() -> None:
+            """Idle for ``settle_after_s``: bring the map to its minimum (one exact solve, one update)."""
+            if time.monotonic() - last_event[0] < params.settle_after_s:
+                return
+            t0 = time.perf_counter()
+            outcome = core.settle()
+            if outcome is not None:
+                apply(outcome, t0)
 
         def on_belief(msg: LocalizationBelief) -> None:
             latest["belief"] = msg
@@ -158,5 +170,5 @@ def run(session: zenoh.Session, params: RelaxerParams, *, robot: str = topics.DE
         node.queryable(topics.map_grid(robot), q_grid, params=("resolution", "frame"))
         node.queryable(topics.map_stats(robot), q_stats)
         node.queryable(topics.map_scans(robot), q_scans, params=("place", "max_offset", "latest"))
-        node.spin(stop)
+        node.spin(stop, tick=settle)
     store.close()

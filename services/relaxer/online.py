@@ -56,6 +56,7 @@ class OnlineParams(msgspec.Struct, frozen=True, kw_only=True):
     reml_max_rounds: int = 30  # EM rounds per re-estimation (warm-started from the current noise)
     reml_samples: int = 16  # posterior samples of the EM's E-step
     changed_threshold_m: float = 1e-6  # a place whose coordinates move less is not in an update
+    settled_step_m: float = 1e-6  # a sweep that moves no place further leaves the map settled (see settle)
     grid_resolution_m: float = 0.15  # default cell size of the global grid (Section 4.3)
     anchor_radius_m: float = 1.5  # a scan taken this close to a place's first position is kept with it
     relax: CompassParams = CompassParams()  # the relaxation engine's parameters (estimate_noise is set
@@ -124,6 +125,8 @@ class OnlineMap:
         self.methods: dict[str, int] = {}
         self.cycle_ms: deque[float] = deque(maxlen=10_000)  # the latest cycles' durations, for stats
         self.energy = 0.0
+        self._settled = True  # the last cycle left the map at its minimum (an exact solve, or a still sweep)
+        self._last_stamp = 0.0
         graph = Graph()
         xy = np.zeros((0, 2))
         noise = _noise_core(params.initial_noise)
@@ -297,10 +300,24 @@ class OnlineMap:
         self.updates += 1
         self.iterations += 1
         self.energy = report.energy
+        self._settled = bool(exact or report.exact or report.step_m <= self.params.settled_step_m)
+        self._last_stamp = stamp
         self.version += 1
         tx.version = self.version
         tx.noise = _noise_msg(report.noise)
         return CycleOutcome(self._update(stamp, changed, bool(moved.all()), 1, method), tx)
+
+    def settle(self) -> CycleOutcome | None:
+        """When events have stopped coming: solve the map exactly if the last cycle's single sweep left
+        it short of its minimum (None when it is there already).
+
+        On-line, one sweep per event spreads a change over the following events (Figure 3); the last
+        events of a run, or of a pause, have none after them. Settling makes the map at rest the
+        minimum of its links, whatever order and timing they came in.
+        """
+        if self._settled or self.relaxer.graph.n_places == 0:
+            return None
+        return self._cycle(self._last_stamp, Transaction(), exact=True)
 
     def _solve(self, r: CompassRelaxer) -> None:
         """The exact minimum; with REML, the noise re-estimated first (when there are loops enough)."""

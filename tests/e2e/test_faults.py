@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 
 from messages import topics
 from messages.codec import DecodeError, codec
-from messages.types import Health, TruthPose
+from messages.types import Health, LinkDeleted, TruthPose
 from services.launch.graph import load_graph
 from services.place_recognizer.node import read_links_log
 from services.relaxer.mapjson import read_map_json
@@ -33,12 +33,13 @@ ROBOT = topics.DEFAULT_ROBOT
 
 
 class SimClock:
-    """The latest simulated time heard on the truth topic."""
+    """The latest simulated time heard on the truth topic, and the links the explorer deleted."""
 
     def __init__(self, session: zenoh.Session) -> None:
         self.sim_s = 0.0
+        self._deleted: dict[frozenset[int], float] = {}  # link -> simulated time of its latest deletion
         self._lock = threading.Lock()
-        dec = codec(TruthPose)
+        dec, dec_deleted = codec(TruthPose), codec(LinkDeleted)
 
         def on_truth(sample: zenoh.Sample) -> None:
             try:
@@ -48,14 +49,29 @@ class SimClock:
             with self._lock:
                 self.sim_s = max(self.sim_s, stamp)
 
-        self._sub = session.declare_subscriber(topics.truth_pose(ROBOT), on_truth)
+        def on_deleted(sample: zenoh.Sample) -> None:
+            try:
+                msg = dec_deleted.decode(sample.payload.to_bytes())
+            except DecodeError:
+                return
+            with self._lock:
+                pair = frozenset((msg.from_id, msg.to_id))
+                self._deleted[pair] = max(self._deleted.get(pair, msg.stamp), msg.stamp)
+
+        self._subs = [session.declare_subscriber(topics.truth_pose(ROBOT), on_truth),
+                      session.declare_subscriber(topics.links_deleted(ROBOT), on_deleted)]
 
     def now(self) -> float:
         with self._lock:
             return self.sim_s
 
+    def deleted_links(self) -> dict[frozenset[int], float]:
+        with self._lock:
+            return dict(self._deleted)
+
     def close(self) -> None:
-        self._sub.undeclare()
+        for sub in self._subs:
+            sub.undeclare()
 
 
 def _pid(session: zenoh.Session, service: str) -> int | None:
@@ -108,6 +124,7 @@ def test_every_service_killed_once_loses_no_link(tmp_path):
             _wait(lambda: (p := _pid(session, name)) is not None and p != pid, 60, f"{name} back after SIGKILL",
                   proc)
         _, err = proc.communicate(timeout=300)
+        deleted_links = clock.deleted_links()
     finally:
         clock.close()
         session.close()
@@ -135,14 +152,14 @@ def test_every_service_killed_once_loses_no_link(tmp_path):
     missing, differ, of_deleted = [], [], 0
     for lk in recorded:
         pair = frozenset((lk.from_id, lk.to_id))
-        if lk.from_id in deleted or lk.to_id in deleted:
-            of_deleted += 1  # the explorer deleted a place of it: the relaxer drops it on purpose
+        if lk.from_id in deleted or lk.to_id in deleted or deleted_links.get(pair, -1.0) >= lk.stamp:
+            of_deleted += 1  # the explorer deleted it (after this measurement) or a place of it: dropped on purpose
             continue
         if pair not in in_map:
             missing.append(sorted(pair))
         elif abs(in_map[pair][0] - lk.d_m) > 1e-9 or in_map[pair][1] != lk.steps:
             differ.append((sorted(pair), in_map[pair], (lk.d_m, lk.steps)))
-    print(f"links recorded {len(recorded)}, in the map {len(in_map)}, of deleted places {of_deleted}; "
+    print(f"links recorded {len(recorded)}, in the map {len(in_map)}, deleted (or of deleted places) {of_deleted}; "
           f"summary: {summary['places']} places, {summary['links_measured']} links measured")
     assert not missing, f"links measured but not in the map: {missing}"
     assert not differ, f"the map holds another measurement than the latest recorded: {differ}"

@@ -185,3 +185,24 @@ def test_impossible_measurements_are_refused_and_change_nothing(bad):
     with pytest.raises(ValueError):
         m.on_place_confirmed(msgspec.structs.replace(_place(9, 1.0, 1.0), x_m=float("nan")))
     assert m.coordinates() == before and m.version == version and (0, 2) not in m.links
+
+
+def test_settle_brings_a_map_left_by_single_sweeps_to_its_minimum():
+    """A chain whose places were confirmed far from where its links put them: one sweep per event
+    leaves it short of the minimum; settle solves it exactly (for a tree: every link met), once."""
+    m = OnlineMap()
+    for i in range(8):
+        m.on_place_confirmed(_place(i, 1.3 * i, 0.4 * i))  # dead reckoning 30% long and drifting
+    for i in range(7):
+        m.on_link_measured(_link(i, i + 1, 1.0, 0.0))
+    before = m.coordinates()
+    assert max(abs(before[i][0] - i) for i in range(8)) > 0.05  # not there yet
+    v = m.version
+    out = m.settle()
+    assert out is not None and out.update is not None and m.version == v + 1
+    xy = m.coordinates()
+    for i in range(8):
+        assert xy[i] == pytest.approx((float(i), 0.0), abs=1e-9)
+    assert m.settle() is None  # at rest: nothing more to do
+    m.on_link_measured(_link(0, 7, 7.0, 0.0))  # a loop closed (solved at once): still at rest
+    assert m.settle() is None
