@@ -258,6 +258,7 @@ class PlaceRecognizer:
         self._links: dict[frozenset[int], LinkAccumulator] = {}
         self.rejected_traversals = 0  # traversals refused by the fusing gate
         self.rejected_arrivals = 0  # recognitions refused as jumps (arrival gate)
+        self._restored_at: tuple[int, tuple[float, float], tuple[float, float]] | None = None  # see restore
 
     # --- inputs -------------------------------------------------------------------------------
 
@@ -280,6 +281,7 @@ class PlaceRecognizer:
         p = self.params
         placed = PlacedScan.from_message(scan, dr.compass)
         xy = (dr.compass.x_m, dr.compass.y_m)
+        self._depart_from_restored(dr)
         self._remember_scan(placed, dr.path_length_m)
         if self._last_xy is None:
             self.belief = _belief.Belief.empty(xy) if self.belief.ids.size == 0 else self.belief
@@ -306,6 +308,7 @@ class PlaceRecognizer:
         now (the offset at the new place is zero by definition).
         """
         p = self.params
+        self._depart_from_restored(dr)
         xy = (dr.compass.x_m, dr.compass.y_m)
         near = [s for s, _ in self._scans if np.hypot(s.x_m - xy[0], s.y_m - xy[1]) <= p.signature_radius_m]
         grid, hist = self._local_grid(near, xy)
@@ -349,7 +352,10 @@ class PlaceRecognizer:
         none is, from the nearest one), as :meth:`add_place` builds it from the scans around a new
         place. A link's accumulator is rebuilt from its fused measurement: ``T`` steps weigh ``1 / T``.
         The belief starts with ``confirmed_probability`` at ``at_place`` (at ``offset_xy``), the
-        rest on "none"; the robot is between places until an observation says where it is.
+        rest on "none"; the robot is between places until an observation says where it is. It left
+        ``at_place`` as far as links go: the first other place it reaches, or the first new one, is
+        linked from ``at_place`` (the offset moved on by dead reckoning to the first pose after the
+        restore), so the continued map joins the saved one.
         """
         if self.belief.ids.size:
             raise ValueError("restore needs a recognizer without places")
@@ -384,6 +390,8 @@ class PlaceRecognizer:
         self._last_xy = (float(dr_xy[0]), float(dr_xy[1]))
         self.current = NO_PLACE
         self._first_visit = NO_PLACE
+        self._restored_at = (at_place, (float(offset_xy[0]), float(offset_xy[1])), self._last_xy) \
+            if at_place in places else None
 
     def remove_place(self, place_id: int) -> None:
         """Forget a deleted place: its belief mass, signature and links."""
@@ -540,6 +548,17 @@ class PlaceRecognizer:
             relocalise_std_m=p.relocalise_std_m,
         )
 
+    def _depart_from_restored(self, dr: DeadReckonedPose) -> None:
+        """The first pose after :meth:`restore`: the robot has left the place it was saved at."""
+        if self._restored_at is None:
+            return
+        pid, offset, xy0 = self._restored_at
+        self._restored_at = None
+        if self.current == NO_PLACE and self._departure is None and np.any(self.belief.ids == pid):
+            xy = (dr.compass.x_m, dr.compass.y_m)
+            moved = (offset[0] + xy[0] - xy0[0], offset[1] + xy[1] - xy0[1])
+            self._departure = _Mark(pid, xy, dr.steps, dr.path_length_m, moved)
+
     def _remember_scan(self, scan: PlacedScan, path_m: float) -> None:
         p = self.params
         self._scans.append((scan, path_m))
@@ -584,7 +603,8 @@ class PlaceRecognizer:
     def _plausible_arrival(self, place_id: int, dr: DeadReckonedPose) -> bool:
         """Whether the belief's position at ``place_id`` lies near where dead reckoning from the last
         place puts the robot: within ``arrival_gate_m`` plus ``arrival_gate_per_m`` per metre travelled."""
-        mark, b, p = self._inside, self.belief, self.params
+        b, p = self.belief, self.params
+        mark = self._inside if self._inside is not None else self._departure
         if mark is None:
             return True
         try:

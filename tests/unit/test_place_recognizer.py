@@ -228,3 +228,27 @@ def test_a_recognition_far_from_where_dead_reckoning_puts_the_robot_is_a_jump():
         assert (0 in at) is expect_at_0, at
         assert int(np.argmax(rec.belief.probs)) == 0  # the belief itself does go there
         assert (rec.rejected_arrivals > 0) is not expect_at_0
+
+
+def test_the_first_new_place_after_a_restore_is_linked_from_the_place_the_robot_was_saved_at(drive):
+    """A continued run joins the saved map: the robot was saved 0.45 m past place 5, on its way out, and
+    drives on east without being at place 5 again; the place confirmed next is linked from place 5,
+    with the saved offset carried on by dead reckoning."""
+    from services.place_recognizer.grid import PlacedScan
+
+    rec = PlaceRecognizer()
+    scans = {pid: [PlacedScan.from_message(scan_at(px + dx, py, 0.0, WALLS)[0], Pose2(x_m=dx, y_m=0.0, heading_rad=0.0))
+                   for dx in np.arange(-0.4, 0.41, 0.1)] for pid, (px, py) in drive.places.items()}
+    x5, y5 = drive.places[5]
+    rec.restore(drive.places, drive.first_pass_links, scans, at_place=5, offset_xy=(0.45, 0.0), dr_xy=(30.0, 4.0))
+    d = _Drive(rec)
+    d.prev, d.steps, d.path = (30.0, 4.0), 500, 25.0  # dead reckoning's own frame, far from the map's
+    at = []
+    for k in range(1, 6):  # on east, 0.5 m more
+        out = rec.step(d.dr(30.0 + 0.1 * k, 4.0), scan_at(x5 + 0.45 + 0.1 * k, y5, 0.0, WALLS)[0])
+        at.append(out.localization.place_id)
+        assert not out.links
+    assert 5 not in at
+    out = rec.add_place(6, x5 + 0.95, y5, d.dr(30.5, 4.0))
+    assert [(lk.from_id, lk.to_id) for lk in out.links] == [(5, 6)]
+    assert out.links[0].d_m == pytest.approx(0.95, abs=0.02) and out.links[0].theta_rad == pytest.approx(0.0, abs=0.02)
