@@ -20,22 +20,22 @@ class CheckpointError(RuntimeError):
     """A checkpoint file exists but cannot be read as the service's state; the message says which."""
 
 
-# msgspec's hook protocol: a hook raises NotImplementedError for a type it does not handle, and msgspec
-# reports that type as unsupported (both hooks handle every type a checkpoint holds)
+# both hooks handle every type a checkpoint holds; any other is a TypeError (msgspec passes it on from
+# encode, and turns it into a ValidationError, a DecodeError, from decode)
 def _enc_hook(obj: Any) -> Any:
     if isinstance(obj, np.ndarray):
         a = np.ascontiguousarray(obj)
         return (a.dtype.str, list(a.shape), a.tobytes())
     if isinstance(obj, np.generic):
         return obj.item()
-    raise NotImplementedError(f"cannot checkpoint {type(obj).__name__}")
+    raise TypeError(f"cannot checkpoint {type(obj).__name__}")
 
 
 def _dec_hook(type_: type, obj: Any) -> Any:
     if type_ is np.ndarray and isinstance(obj, (list, tuple)) and len(obj) == 3:
         dtype, shape, data = obj
         return np.frombuffer(data, dtype=np.dtype(dtype)).reshape(shape).copy()
-    raise NotImplementedError(f"cannot restore {type_!r} from {type(obj).__name__}")
+    raise TypeError(f"cannot restore {type_!r} from {type(obj).__name__}")
 
 
 class Checkpoint(Generic[T]):
@@ -98,7 +98,7 @@ class Checkpoint(Generic[T]):
         self._seq = seq
         try:
             return self._decoder.decode(payload)
-        except (msgspec.DecodeError, ValueError, TypeError, NotImplementedError) as e:
+        except (msgspec.DecodeError, ValueError, TypeError) as e:
             raise CheckpointError(f"{self.path}: not a {getattr(self.type, '__name__', self.type)} "
                                   f"checkpoint ({e})") from e
 
