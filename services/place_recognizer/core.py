@@ -390,8 +390,9 @@ class PlaceRecognizer:
         self._last_xy = (float(dr_xy[0]), float(dr_xy[1]))
         self.current = NO_PLACE
         self._first_visit = NO_PLACE
-        self._restored_at = (at_place, (float(offset_xy[0]), float(offset_xy[1])), self._last_xy) \
-            if at_place in places else None
+        self._restored_at = None
+        if at_place in places:
+            self._restored_at = (at_place, (float(offset_xy[0]), float(offset_xy[1])), self._last_xy)
 
     def remove_place(self, place_id: int) -> None:
         """Forget a deleted place: its belief mass, signature and links."""

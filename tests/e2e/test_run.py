@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from services.launch.evaluate import place_errors_m
 from services.relaxer.g2o import read_g2o
 from services.relaxer.mapjson import read_map_json
 
@@ -159,9 +160,7 @@ def test_long_run_keeps_every_link_and_no_place_strays(tmp_path):
     truth = {p["id"]: (p["x"], p["y"]) for p in json.loads((out / "truth.json").read_text())["places"]}
     assert set(truth) == set(relaxed)
     assert summary["ate_relaxed_m"] < 3.0, summary
-    first = min(relaxed)
-    shift = np.subtract(truth[first], relaxed[first])
-    astray = {i: round(float(np.hypot(*(np.add(xy, shift) - truth[i]))), 2) for i, xy in relaxed.items()}
+    astray = place_errors_m(relaxed, truth, min(relaxed))
     assert max(astray.values()) < 6.0, sorted(astray.items(), key=lambda e: -e[1])[:5]
 
 
