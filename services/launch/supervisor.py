@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import IO
 
 from services.launch.graph import ProcessGraph, ServiceSpec, expand_args
+from services.runtime.service import PARENT_PID_ENV
 
 log = logging.getLogger("relaxmap.launch")
 
@@ -58,8 +59,9 @@ class Supervisor:
         cmd = [sys.executable, "-m", sv.spec.module, *sv.args]
         sv.log_file.write(f"\n=== start: {' '.join(cmd)}\n".encode())
         sv.log_file.flush()
+        env = {**os.environ, PARENT_PID_ENV: str(os.getpid())}
         sv.proc = subprocess.Popen(cmd, stdout=sv.log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                   start_new_session=True)
+                                   start_new_session=True, env=env)
         sv.restart_at = None
 
     def start(self) -> None:

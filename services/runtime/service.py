@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import os
 import signal
 import sys
 import threading
@@ -28,6 +29,38 @@ def shutdown_event() -> threading.Event:
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
     return stop
+
+
+# Set by a launcher to its own pid: the service stops when that process is gone, even if it was
+# SIGKILLed and could not stop its children itself.
+PARENT_PID_ENV = "RELAXMAP_PARENT_PID"
+PARENT_POLL_S = 0.5
+
+
+def stop_with_parent(stop: threading.Event, *, poll_s: float = PARENT_POLL_S) -> threading.Thread | None:
+    """Set ``stop`` once the launcher named in ``RELAXMAP_PARENT_PID`` has ended (the service is then
+    adopted by another process, so its parent pid changes). A polling thread rather than Linux's
+    PR_SET_PDEATHSIG, which fires when the forking thread ends, not the process, and is Linux-only."""
+    value = os.environ.get(PARENT_PID_ENV)
+    if not value:
+        return None
+    try:
+        parent = int(value)
+    except ValueError:
+        log.warning("%s=%r is not a pid: not watching the launcher", PARENT_PID_ENV, value)
+        return None
+
+    def watch() -> None:
+        while not stop.is_set():
+            if os.getppid() != parent:
+                log.warning("launcher (pid %d) is gone: stopping", parent)
+                stop.set()
+                return
+            stop.wait(poll_s)
+
+    thread = threading.Thread(target=watch, name="parent-watch", daemon=True)
+    thread.start()
+    return thread
 
 
 def setup_logging(verbose: int = 0) -> None:
@@ -56,6 +89,7 @@ def service_main(
     args = parser.parse_args(argv)
     setup_logging(args.verbose)
     stop = shutdown_event()
+    stop_with_parent(stop)
     try:
         conf = config_from_args(args)
     except ValueError as e:

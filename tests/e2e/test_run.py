@@ -205,6 +205,62 @@ def test_killed_relaxer_is_restarted_and_loses_nothing(tmp_path):
     assert summary["links_lost"] == 0, summary
 
 
+def test_services_stop_when_the_launcher_is_killed(tmp_path):
+    """SIGKILL the launcher alone (it cannot stop anything then): every service notices that its
+    launcher is gone and ends by itself, the relaxer's store keeps what was mapped."""
+    import psutil
+    import zenoh
+
+    from messages.types import Health, MapStats
+    from services.runtime import QueryFailed, loopback_config, query
+    from services.runtime.procs import free_port
+
+    names = ("sensor_sim", "dead_reckoning", "place_recognizer", "explorer", "relaxer", "recorder")
+    port = free_port()
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", "--port", str(port), "--headless",
+                             "--out", str(out), "--max-sim-time", "100000"], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+    pids: dict[str, int] = {}
+    session = zenoh.open(loopback_config(connect=[f"tcp/127.0.0.1:{port}"]))
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            try:
+                if query(session, "relaxmap/robot0/map/stats", type_=MapStats, timeout_s=1).places >= 3:
+                    break
+            except QueryFailed:
+                pass
+            time.sleep(0.1)
+        for name in names:
+            pids[name] = query(session, f"relaxmap/robot0/health/{name}", type_=Health, timeout_s=2).pid
+        session.close()
+        proc.kill()
+        proc.wait()
+
+        def running(pid: int) -> bool:
+            try:
+                return psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
+            except psutil.NoSuchProcess:
+                return False
+
+        deadline = time.monotonic() + 30
+        while any(running(pid) for pid in pids.values()) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        left = {name: pid for name, pid in pids.items() if running(pid)}
+    finally:
+        session.close()
+        for pid in [proc.pid, *pids.values()]:
+            try:
+                os.killpg(pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+    assert not left, f"still running after their launcher was killed: {left}"
+    assert _stored_places(out / "map.sqlite") >= 3
+    for name in names:
+        assert "launcher (pid" in (out / "logs" / f"{name}.log").read_text(), name
+
+
 def _map(out: Path) -> tuple[dict[int, tuple[float, float]], dict[tuple[int, int], dict]]:
     """Places (id -> coordinates) and links (unordered pair -> link) of ``out/map.json``."""
     m = json.loads((out / "map.json").read_text())
