@@ -116,7 +116,7 @@ class ExplorerShell:
                  log_events=None) -> None:
         self.params = params
         self._save = save  # save(checkpoint), called with every answer before anything is published
-        self._log_events = log_events  # log_events([(topic name, message)]): place events, before they go out
+        self._log_events = log_events  # log_events([(topic name, message)]): map events, before they go out
         self.core = Explorer(params.core)
         self._publish = publish  # publish(topic_name, message)
         self._clock = clock
@@ -287,11 +287,11 @@ class ExplorerShell:
                                                       omega_radps=w, tick=tick))
 
 
-# The place events, logged before they go out and published again after a restart. A repeat is harmless
-# (place ids are never reused: a known place stays known, a deleted one deleted); a link deletion is
-# not logged, since a repeat of it could remove the same link measured again later.
-_MapEvent = PlaceConfirmed | PlaceDeleted
-_EVENT_TOPIC = {PlaceConfirmed: "places_confirmed", PlaceDeleted: "places_deleted"}
+# The map events, logged before they go out and published again after a restart. A repeat is harmless:
+# place ids are never reused (a known place stays known, a deleted one deleted), and receivers ignore
+# a link deletion older than the link's latest measurement.
+_MapEvent = PlaceConfirmed | PlaceDeleted | LinkDeleted
+_EVENT_TOPIC = {PlaceConfirmed: "places_confirmed", PlaceDeleted: "places_deleted", LinkDeleted: "links_deleted"}
 _TYPES = {"cmd_velocity": VelocityCommand, "places_predicted": PlacePredicted, "places_confirmed": PlaceConfirmed,
           "places_deleted": PlaceDeleted, "links_inferred": LinkInferred, "links_confidence": LinkConfidence,
           "links_deleted": LinkDeleted, "exploration_status": ExplorationStatus}
@@ -317,7 +317,7 @@ def run(session: zenoh.Session, params: ExplorerNodeParams = ExplorerNodeParams(
         elif params.resume:
             shell.restore(fetch_saved_map(session, robot, near_m=params.resume_near_m, at=params.resume_at))
         if events is not None:
-            # the killed process may have logged place events that never left it: all of them again,
+            # the killed process may have logged map events that never left it: all of them again,
             # in their order
             resent = events.read()
             for msg in resent:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import bisect
+import math
 import threading
 import time
 
@@ -109,7 +110,9 @@ class RunMonitor:
         self.deleted_places: set[int] = set()
         self.measured: set[tuple[int, int]] = set()
         self.inferred: set[tuple[int, int]] = set()
-        self.deleted_links: set[tuple[int, int]] = set()
+        self.deleted_links: set[tuple[int, int]] = set()  # deleted after their latest measurement
+        self._measured_at: dict[tuple[int, int], float] = {}  # latest measurement's stamp, this part of the run
+        self._deleted_at: dict[tuple[int, int], float] = {}  # latest deletion's stamp
         self.decode_errors = 0
         self._last_event = time.monotonic()  # when the last map event (place or link) was heard
         handlers = {
@@ -195,15 +198,22 @@ class RunMonitor:
 
     def _on_measured(self, msg: LinkMeasured) -> None:
         self._last_event = time.monotonic()
-        self.measured.add(_pair(msg.from_id, msg.to_id))
+        pair = _pair(msg.from_id, msg.to_id)
+        self.measured.add(pair)
+        self._measured_at[pair] = max(msg.stamp, self._measured_at.get(pair, -math.inf))
+        if self._measured_at[pair] > self._deleted_at.get(pair, -math.inf):
+            self.deleted_links.discard(pair)  # measured again after its deletion: the map must hold it
 
     def _on_inferred(self, msg: LinkInferred) -> None:
         self.inferred.add(_pair(msg.from_id, msg.to_id))
 
     def _on_link_deleted(self, msg: LinkDeleted) -> None:
         self._last_event = time.monotonic()
-        self.inferred.discard(_pair(msg.from_id, msg.to_id))
-        self.deleted_links.add(_pair(msg.from_id, msg.to_id))
+        pair = _pair(msg.from_id, msg.to_id)
+        self.inferred.discard(pair)
+        self._deleted_at[pair] = max(msg.stamp, self._deleted_at.get(pair, -math.inf))
+        if self._deleted_at[pair] >= self._measured_at.get(pair, -math.inf):
+            self.deleted_links.add(pair)
 
     # -- views ------------------------------------------------------------------------------------
     def progress(self) -> dict[str, float]:

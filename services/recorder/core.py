@@ -268,6 +268,9 @@ class RecorderState:
 
     def link_deleted(self, msg: LinkDeleted) -> None:
         key = _link_key(msg.from_id, msg.to_id)
+        held = self.traversed.get(key)
+        if held is not None and held.stamp > msg.stamp:
+            return  # a deletion heard again after the link was measured anew
         self.traversed.pop(key, None)
         self.inferred.pop(key, None)
 

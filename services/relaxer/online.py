@@ -111,6 +111,7 @@ class OnlineMap:
         self.version = 0
         self.seq = 0
         self.links: dict[tuple[int, int], MapLink] = {}
+        self.link_stamps: dict[tuple[int, int], float] = {}  # simulated time of each link's latest measurement
         self._pending: dict[tuple[int, int], LinkMeasured] = {}  # links whose places are not known yet
         self.deleted: set[int] = set()  # places deleted for good: a replayed confirmation stays ignored
         self.initial: dict[int, tuple[float, float]] = {}  # place -> position when confirmed (dead reckoning)
@@ -138,6 +139,7 @@ class OnlineMap:
                 graph.add_link(lk.from_id, lk.to_id, d_m=lk.d_m, theta_rad=lk.theta_rad, steps=lk.steps,
                                mean_step_m=lk.mean_step_m, variance_m2=lk.variance_m2)
                 self.links[_pair(lk.from_id, lk.to_id)] = lk
+            self.link_stamps = dict(stored.link_stamps)
             self.version = stored.version
             self.deleted = set(stored.deleted)
             self.initial = dict(stored.initial)
@@ -204,6 +206,7 @@ class OnlineMap:
                        steps=msg.steps, mean_step_m=msg.mean_step_m, variance_m2=msg.variance_m2,
                        traversals=msg.traversals)
         self.links[key] = link
+        self.link_stamps[key] = msg.stamp
         tx.links.append((link, msg.stamp))
 
     def on_place_deleted(self, place_id: int, stamp: float) -> CycleOutcome:
@@ -226,10 +229,15 @@ class OnlineMap:
     def on_link_deleted(self, a: int, b: int, stamp: float) -> CycleOutcome:
         tx = Transaction()
         key = _pair(a, b)
-        self._pending.pop(key, None)
+        pending = self._pending.get(key)
+        if pending is not None and pending.stamp <= stamp:
+            del self._pending[key]
         if key not in self.links:
             return CycleOutcome(None, tx)
+        if stamp < self.link_stamps.get(key, -math.inf):
+            return CycleOutcome(None, tx)  # a deletion heard again (history) after the link was measured anew
         lk = self.links.pop(key)
+        self.link_stamps.pop(key, None)
         self.relaxer.remove_link(a, b)
         tx.deleted_links.append((lk.from_id, lk.to_id))
         return self._cycle(stamp, tx)

@@ -63,6 +63,7 @@ class StoredMap:
     noise: NoiseParams | None = None
     received: dict[str, int] = field(default_factory=dict)  # topic -> last sequence number applied
     deleted: set[int] = field(default_factory=set)  # ids of places deleted for good
+    link_stamps: dict[tuple[int, int], float] = field(default_factory=dict)  # (a, b) -> latest measurement
 
 
 @dataclass
@@ -115,10 +116,12 @@ class MapStore:
         for pid, x, y, x0, y0 in db.execute("SELECT id, x, y, x0, y0 FROM places"):
             places[pid] = (x, y)
             initial[pid] = (x0, y0)
-        links = [MapLink(from_id=a, to_id=b, d_m=d, theta_rad=t, steps=s, mean_step_m=m, variance_m2=v,
-                         traversals=n)
-                 for a, b, d, t, s, m, v, n in db.execute(
-                     "SELECT a, b, d, theta, steps, mean_step, variance, traversals FROM links ORDER BY stamp")]
+        links, link_stamps = [], {}
+        for a, b, d, t, s, m, v, n, stamp in db.execute(
+                "SELECT a, b, d, theta, steps, mean_step, variance, traversals, stamp FROM links ORDER BY stamp"):
+            links.append(MapLink(from_id=a, to_id=b, d_m=d, theta_rad=t, steps=s, mean_step_m=m, variance_m2=v,
+                                 traversals=n))
+            link_stamps[(min(a, b), max(a, b))] = stamp
         meta = dict(db.execute("SELECT key, value FROM meta"))
         noise = None
         if "s_dd" in meta:
@@ -126,7 +129,7 @@ class MapStore:
         received = dict(db.execute("SELECT topic, seq FROM received"))
         deleted = {r[0] for r in db.execute("SELECT id FROM deleted_places")}
         return StoredMap(places=places, initial=initial, links=links, version=int(meta.get("version", 0)),
-                         noise=noise, received=received, deleted=deleted)
+                         noise=noise, received=received, deleted=deleted, link_stamps=link_stamps)
 
     def commit(self, tx: Transaction) -> None:
         """Write one update in one transaction: all of it or, if the process dies, none of it."""

@@ -49,6 +49,7 @@ def _rss(pid: int) -> int | None:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(max(600.0, SOAK_SIM_S / 4))  # campus runs at 10-20x real time on 2 cores
 def test_memory_stays_bounded_on_campus(tmp_path):
     port = free_port()
     out = tmp_path / "run"

@@ -118,6 +118,15 @@ def test_link_kinds_are_kept_apart():
     assert links.traversed_ids.tolist() == [[1, 2]] and links.inferred_ids.shape == (0, 2)
 
 
+def test_a_deletion_older_than_the_links_latest_measurement_leaves_it_drawn():
+    st = state_with_places()
+    st.link_measured(measured(0, 1))  # at 2 s
+    st.link_deleted(LinkDeleted(stamp=1.5, seq=0, from_id=1, to_id=0, reason="low confidence"))
+    assert st.links().traversed_ids.tolist() == [[0, 1]]
+    st.link_deleted(LinkDeleted(stamp=2.5, seq=1, from_id=1, to_id=0, reason="low confidence"))
+    assert st.links().traversed_ids.tolist() == []
+
+
 def test_links_wait_for_their_places():
     st = RecorderState()
     st.link_measured(measured(3, 4))

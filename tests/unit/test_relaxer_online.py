@@ -16,8 +16,8 @@ def _place(i: int, x: float, y: float) -> PlaceConfirmed:
     return PlaceConfirmed(stamp=float(i), seq=i, place_id=i, x_m=x, y_m=y)
 
 
-def _link(a: int, b: int, dx: float, dy: float, traversals: int = 1) -> LinkMeasured:
-    return LinkMeasured(stamp=10.0, seq=0, from_id=a, to_id=b, d_m=math.hypot(dx, dy), theta_rad=math.atan2(dy, dx),
+def _link(a: int, b: int, dx: float, dy: float, traversals: int = 1, stamp: float = 10.0) -> LinkMeasured:
+    return LinkMeasured(stamp=stamp, seq=0, from_id=a, to_id=b, d_m=math.hypot(dx, dy), theta_rad=math.atan2(dy, dx),
                         steps=10, mean_step_m=0.1, traversals=traversals)
 
 
@@ -72,6 +72,33 @@ def test_delete_place_and_link():
     assert set(m.links) == {(0, 1)}
     m.on_place_deleted(9, 32.0)  # a place the map never held (a predicted one): its id is taken too
     assert m.graph().deleted == [2, 9]
+
+
+def test_a_deletion_heard_again_does_not_remove_the_link_measured_after_it(tmp_path):
+    """A link deleted at 30 s and measured again at 40 s stays when the deletion comes again (the
+    subscriber's history after a restart), in memory and after a resume from the store."""
+    store = MapStore(tmp_path / "m.sqlite")
+    m = OnlineMap()
+    for i, (x, y) in enumerate([(0, 0), (1.0, 0.05)]):
+        store.commit(m.on_place_confirmed(_place(i, x, y)).tx)
+    store.commit(m.on_link_measured(_link(0, 1, 1, 0, stamp=10.0)).tx)
+    store.commit(m.on_link_deleted(0, 1, 30.0).tx)
+    assert (0, 1) not in m.links
+    store.commit(m.on_link_measured(_link(1, 0, -1, 0, traversals=2, stamp=40.0)).tx)
+    assert m.on_link_deleted(0, 1, 30.0).update is None and (0, 1) in m.links
+    store.close()
+    again = OnlineMap(stored=MapStore(tmp_path / "m.sqlite").load())
+    assert again.on_link_deleted(1, 0, 30.0).update is None and (0, 1) in again.links
+    assert again.on_link_deleted(1, 0, 50.0).update is not None and (0, 1) not in again.links
+
+
+def test_a_deletion_keeps_a_waiting_measurement_taken_after_it():
+    m = OnlineMap()
+    m.on_place_confirmed(_place(0, 0, 0))
+    m.on_link_measured(_link(0, 1, 1, 0, stamp=40.0))  # place 1 is on its way
+    m.on_link_deleted(0, 1, 30.0)
+    m.on_place_confirmed(_place(1, 0.9, 0.0))
+    assert (0, 1) in m.links
 
 
 def test_queries():
