@@ -32,7 +32,7 @@ FAULTS_SEED = int(os.environ.get("RELAXMAP_FAULTS_SEED", "0"))
 ROBOT = topics.DEFAULT_ROBOT
 
 
-class SimClock:
+class RunListener:
     """The latest simulated time heard on the truth topic, and the links the explorer deleted."""
 
     def __init__(self, session: zenoh.Session) -> None:
@@ -110,23 +110,23 @@ def test_every_service_killed_once_loses_no_link(tmp_path):
                              "--max-sim-time", f"{FAULTS_SIM_S:g}"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     session = zenoh.open(loopback_config(connect=[f"tcp/127.0.0.1:{port}"]))
-    clock = SimClock(session)
+    heard = RunListener(session)
     killed: list[tuple[str, int, float]] = []
     try:
         for at_s, name in schedule:
-            _wait(lambda: clock.now() >= at_s, 120, f"simulated time {at_s:.0f} s", proc)
+            _wait(lambda: heard.now() >= at_s, 120, f"simulated time {at_s:.0f} s", proc)
             _wait(lambda: _pid(session, name) is not None, 30, f"health of {name}", proc)
             pid = _pid(session, name)
             assert pid is not None
             os.kill(pid, signal.SIGKILL)
-            killed.append((name, pid, clock.now()))
+            killed.append((name, pid, heard.now()))
             # the next kill only once this service is back (another pid answers its health)
             _wait(lambda: (p := _pid(session, name)) is not None and p != pid, 60, f"{name} back after SIGKILL",
                   proc)
         _, err = proc.communicate(timeout=300)
-        deleted_links = clock.deleted_links()
+        deleted_links = heard.deleted_links()
     finally:
-        clock.close()
+        heard.close()
         session.close()
         stop_group(proc)
     print("\nkilled (service, pid, simulated s):", [(n, p, round(t, 1)) for n, p, t in killed])
