@@ -105,6 +105,7 @@ class Node:
             counts = dict(self._counts)
             detail = {k: float(v) for k, v in self.detail.items()}
         detail["handler_errors"] = float(counts["handler_errors"])
+        detail["queued"] = float(self._events.qsize())  # received, not handled yet: a service that lags
         return Health(stamp=time.time(), seq=0, service=self.service, pid=os.getpid(),
                       uptime_s=self._clock() - self._started, messages_in=counts["messages_in"],
                       messages_out=counts["messages_out"], decode_errors=counts["decode_errors"],
