@@ -48,7 +48,7 @@ class PlaceRecognizerParams:
     max_hypotheses: int = 5  # hypotheses reported in the localization (most probable first)
     match_min_prior: float = 0.0  # places less probable than this before the scan are not matched
     link_map_gate_m: float = 0.75  # a traversal further than this from the centres' displacement is rejected
-    arrival_gate_m: float = 2.5  # an arrival further than this from where dead reckoning puts the robot
+    arrival_gate_m: float = 1.0  # an arrival further than this from where dead reckoning puts the robot
     arrival_gate_per_m: float = 0.05  # ... plus this per metre travelled since the last place is a jump
     match_window_sd: float = 3.0  # a place is matched at shifts within this many standard deviations of
     # its predicted offset (0: at every shift)
