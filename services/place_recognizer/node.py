@@ -276,6 +276,8 @@ class RecognizerShell:
             return
         if self._tick(msg.stamp) < self._done_tick:
             self.counts["late_events"] += 1  # a scan after it was processed already: apply it now
+            log.info("%s: %s of tick %d heard after tick %d was processed; applied now", SERVICE,
+                     type(msg).__name__, self._tick(msg.stamp), self._done_tick)
             self._apply_event(msg)
             return
         self._events.append((msg, self._clock()))
