@@ -203,6 +203,7 @@ class ExplorerShell:
             self._scans[tick] = msg
         else:
             self.counts["late_scans"] += 1  # a later tick was answered without it
+            log.info("%s: scan of tick %d heard after tick %d was answered", SERVICE, tick, self.last_tick)
 
     def on_odometry(self, msg: OdometryStep) -> None:
         self._sensor_tick = max(self._sensor_tick, self._tick_of(msg.stamp))
