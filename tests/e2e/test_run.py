@@ -146,7 +146,7 @@ def test_long_run_keeps_every_link_and_no_place_strays(tmp_path):
     ``ate_relaxed_m`` 0.35-0.69 m against compass dead reckoning's 0.52-0.75 m; in CI once 2.14 m (one
     wrong loop-closing link, 2.8 m off, bent a branch by 3.3 m; dead reckoning 0.61 m). Before the
     gate, two CI runs ended at 2.4 and 3.3 m, each with a place 8-10 m astray. The figure of a run that
-    is a function of its seed is asserted in process (tests/unit/test_inprocess_runs.py, 0.37 m).
+    is a function of its seed is asserted in process (tests/unit/test_inprocess_runs.py, 0.34 m).
     """
     out = tmp_path / "run"
     done = _run(out, "--world", "orebro-office", "--seed", "0", "--max-sim-time", f"{LONG_RUN_SIM_S:g}",
