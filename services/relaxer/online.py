@@ -221,6 +221,7 @@ class OnlineMap:
         self.initial.pop(place_id, None)
         for key in [k for k in self.links if place_id in k]:
             del self.links[key]
+            self.link_stamps.pop(key, None)
         self._pending = {k: v for k, v in self._pending.items() if place_id not in k}
         tx.deleted_places.append(place_id)
         self.deleted.add(place_id)
