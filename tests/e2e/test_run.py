@@ -212,10 +212,11 @@ def test_services_stop_when_the_launcher_is_killed(tmp_path):
     import zenoh
 
     from messages.types import Health, MapStats
-    from services.runtime import QueryFailed, loopback_config, query
+    from services.launch.graph import load_graph
+    from services.runtime import QueryFailed, deploy_file, loopback_config, query
     from services.runtime.procs import free_port
 
-    names = ("sensor_sim", "dead_reckoning", "place_recognizer", "explorer", "relaxer", "recorder")
+    names = load_graph(deploy_file("graph.json")).names()
     port = free_port()
     out = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, "-m", "services.cli", "run", "--port", str(port), "--headless",
@@ -234,7 +235,6 @@ def test_services_stop_when_the_launcher_is_killed(tmp_path):
             time.sleep(0.1)
         for name in names:
             pids[name] = query(session, f"relaxmap/robot0/health/{name}", type_=Health, timeout_s=2).pid
-        session.close()
         proc.kill()
         proc.wait()
 
