@@ -44,6 +44,7 @@ class OdometryStep(Message, frozen=True, kw_only=True):
     distance_m: float  # signed distance travelled by the wheels in this step
     rotation_rad: float  # heading change measured by the wheels in this step
     dt_s: float  # duration of the step
+    sonar_seq: int = -1  # seq of the latest sonar scan published before this step (-1: none yet)
 
 
 class CompassReading(Message, frozen=True, kw_only=True):
@@ -172,11 +173,18 @@ class LinkDeleted(Message, frozen=True, kw_only=True):
 
 
 class VelocityCommand(Message, frozen=True, kw_only=True):
-    """Velocity command for the robot. ``tick`` is the simulation tick it answers (lockstep clock)."""
+    """Velocity command for the robot. ``tick`` is the simulation tick it answers (lockstep clock).
+
+    ``confirmed_seq`` and ``deleted_seq`` are the seqs of the latest ``PlaceConfirmed`` and
+    ``PlaceDeleted`` the explorer published before this command (-1: none), so that a receiver knows
+    which events it must have heard: zenoh keeps the order of one key's messages, not across keys.
+    """
 
     v_mps: float
     omega_radps: float
     tick: int
+    confirmed_seq: int = -1
+    deleted_seq: int = -1
 
 
 class ExplorationStatus(Message, frozen=True, kw_only=True):

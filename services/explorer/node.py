@@ -97,6 +97,8 @@ class ExplorerCheckpoint(msgspec.Struct, frozen=True):
     scans: dict[int, SonarScan]
     beliefs: dict[int, LocalizationBelief]
     counts: dict[str, int]
+    scan_heard: int = -1
+    scan_due: int = -1
 
 
 class ExplorerShell:
@@ -104,10 +106,11 @@ class ExplorerShell:
 
     The command for tick ``k`` is computed from the dead-reckoned pose of tick ``k`` with the sonar
     scan of an earlier tick and the recognizer's localization of that scan (normally tick ``k - 1``),
-    as :mod:`services.launch.inprocess` does. The scan of tick ``k - 1`` is in once the odometry step
-    of tick ``k`` is (zenoh keeps the order of one session's messages, and the simulator publishes a
-    scan before the next tick's odometry); its localization comes later, so the answer waits for
-    both, at most ``localization_timeout_s`` (counted in health; the tick is then answered without). A pose of a tick already answered
+    as :mod:`services.launch.inprocess` does. The scans of earlier ticks are in once the odometry step
+    of tick ``k`` is and the scan it names (``sonar_seq``) has been heard: zenoh keeps the order of
+    one key's messages, not across keys, so a scan can come after a later odometry step. The
+    localization comes later still, so the answer waits for all of them, at most
+    ``localization_timeout_s`` (counted in health; the tick is then answered without). A pose of a tick already answered
     (the simulator repeats tick 0 until its first command arrives) is answered again with the same
     command. Once exploration is complete every tick is answered with zero velocity.
     """
@@ -126,6 +129,8 @@ class ExplorerShell:
         self._beliefs: dict[int, LocalizationBelief] = {}  # tick -> localization of that scan
         self.last_tick = -1
         self._sensor_tick = -1  # the latest tick of an odometry step
+        self._scan_heard = -1  # the highest seq of a scan heard
+        self._scan_due = -1  # the highest seq of a scan an odometry step said was published
         self._last_cmd = (0.0, 0.0)
         self._seq: dict[str, int] = {}
         self._status: tuple | None = None
@@ -133,7 +138,7 @@ class ExplorerShell:
         self.output: ExplorerOutput | None = None
         self.counts = {"ticks": 0, "repeats": 0, "skipped_poses": 0, "scans": 0, "fixes": 0,
                        "localization_timeouts": 0, "map_updates": 0, "events": 0, "complete": 0,
-                       "late_scans": 0}
+                       "late_scans": 0, "scan_timeouts": 0}
 
     def _tick_of(self, stamp: float) -> int:
         return round(stamp / self.params.dt_s)
@@ -142,7 +147,8 @@ class ExplorerShell:
         return ExplorerCheckpoint(
             core=self.core.snapshot(), last_tick=self.last_tick, sensor_tick=self._sensor_tick,
             last_cmd=self._last_cmd, seq=dict(self._seq), status=self._status, status_stamp=self._status_stamp,
-            scans=dict(self._scans), beliefs=dict(self._beliefs), counts=dict(self.counts))
+            scans=dict(self._scans), beliefs=dict(self._beliefs), counts=dict(self.counts),
+            scan_heard=self._scan_heard, scan_due=self._scan_due)
 
     def resume(self, ckpt: ExplorerCheckpoint) -> None:
         """Go on from a checkpoint: the ticks it answered are answered, its events published."""
@@ -151,6 +157,7 @@ class ExplorerShell:
         self._seq, self._status_stamp = dict(ckpt.seq), ckpt.status_stamp
         self._status = tuple(ckpt.status) if ckpt.status is not None else None
         self._scans, self._beliefs = dict(ckpt.scans), dict(ckpt.beliefs)
+        self._scan_heard, self._scan_due = ckpt.scan_heard, ckpt.scan_due
         self.counts.update(ckpt.counts)
 
     def _next_seq(self, name: str) -> int:
@@ -198,15 +205,18 @@ class ExplorerShell:
         self.try_answer()
 
     def on_sonar(self, msg: SonarScan) -> None:
+        self._scan_heard = max(self._scan_heard, msg.seq)
         tick = self._tick_of(msg.stamp)
         if tick >= self.last_tick:  # a scan of the tick just answered serves the next one
             self._scans[tick] = msg
         else:
             self.counts["late_scans"] += 1  # a later tick was answered without it
             log.info("%s: scan of tick %d heard after tick %d was answered", SERVICE, tick, self.last_tick)
+        self.try_answer()
 
     def on_odometry(self, msg: OdometryStep) -> None:
         self._sensor_tick = max(self._sensor_tick, self._tick_of(msg.stamp))
+        self._scan_due = max(self._scan_due, msg.sonar_seq)
         self.try_answer()
 
     def on_localization(self, msg: LocalizationBelief) -> None:
@@ -231,9 +241,16 @@ class ExplorerShell:
             return
         tick = self._tick_of(pose.stamp)
         waited = self._clock() - self._pose_wall
-        if self.last_tick >= 0 and self._sensor_tick < tick and waited < self.params.localization_timeout_s:
-            return  # the odometry of this tick follows the scan of the last one: wait for it (the first
-            # tick, 0 or the one a continued run starts at, comes without odometry)
+        if self.last_tick >= 0 and (self._sensor_tick < tick or self._scan_heard < self._scan_due):
+            # the odometry of this tick names the scans before it: wait for both (the first tick, 0 or
+            # the one a continued run starts at, comes without odometry)
+            if waited < self.params.localization_timeout_s:
+                return
+            if self._scan_heard < self._scan_due:  # lost for good (a restart): wait for it no more
+                self.counts["scan_timeouts"] += 1
+                log.warning("%s: scans up to seq %d not heard within %.1f s: answering tick %d without them",
+                            SERVICE, self._scan_due, self.params.localization_timeout_s, tick)
+                self._scan_heard = self._scan_due
         earlier = sorted(t for t in self._scans if t < tick)
         missing = [t for t in earlier if t not in self._beliefs]
         if missing and self.params.wait_localization:
@@ -270,8 +287,7 @@ class ExplorerShell:
             status = ExplorationStatus(
                 stamp=pose.stamp, seq=self._next_seq("exploration_status"), complete=st.complete,
                 confirmed=st.confirmed, predicted=st.predicted, target_id=st.target_id)
-        command = VelocityCommand(stamp=pose.stamp, seq=self._next_seq("cmd_velocity"), v_mps=cmd[0],
-                                  omega_radps=cmd[1], tick=tick)
+        command = self._velocity(pose.stamp, tick, *cmd)
         map_events = [(name, msg) for name, msg in events if name in _EVENT_TOPIC.values()]
         if self._log_events is not None and map_events:
             self._log_events(map_events)
@@ -284,8 +300,13 @@ class ExplorerShell:
             self._publish("exploration_status", status)
 
     def _command(self, stamp: float, tick: int, v: float, w: float) -> None:
-        self._publish("cmd_velocity", VelocityCommand(stamp=stamp, seq=self._next_seq("cmd_velocity"), v_mps=v,
-                                                      omega_radps=w, tick=tick))
+        self._publish("cmd_velocity", self._velocity(stamp, tick, v, w))
+
+    def _velocity(self, stamp: float, tick: int, v: float, w: float) -> VelocityCommand:
+        """The command of ``tick``, naming the latest place events published before it."""
+        return VelocityCommand(stamp=stamp, seq=self._next_seq("cmd_velocity"), v_mps=v, omega_radps=w, tick=tick,
+                               confirmed_seq=self._seq.get("places_confirmed", 0) - 1,
+                               deleted_seq=self._seq.get("places_deleted", 0) - 1)
 
 
 # The map events, logged before they go out and published again after a restart. A repeat is harmless:

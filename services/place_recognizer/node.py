@@ -84,6 +84,7 @@ class RecognizerCheckpoint(msgspec.Struct, frozen=True):
     last_scan_seq: int
     latest_stamp: float
     counts: dict[str, int]
+    event_seqs: tuple[int, int] = (-1, -1)  # the highest seqs of places confirmed and deleted applied
 
 
 class RecognizerFiles:
@@ -153,13 +154,14 @@ class RecognizerShell:
 
     The order is, tick by tick: the explorer's events of tick ``j - 1`` (places confirmed or
     deleted), then the scan of tick ``j`` with the dead-reckoned pose of the same stamp. zenoh keeps
-    the order of messages from one session to another, which tells when an input is complete:
+    the order of one key's messages, not across keys, so the messages that follow an input name it:
 
-    - the events of tick ``j - 1`` are all in once the velocity command of tick ``j - 1`` is (the
-      explorer publishes it after them), so the scan of tick ``j`` waits for that command;
-    - there is no scan of tick ``j`` once the odometry step of tick ``j + 1`` has come without one
-      (the simulator publishes a scan before the next tick's odometry), so the events of tick ``j``
-      wait for that step (or for the scan).
+    - the velocity command of tick ``j - 1`` names the latest place events the explorer published
+      before it (``confirmed_seq``, ``deleted_seq``), so the scan of tick ``j`` waits for that command
+      and for those events;
+    - the odometry step of tick ``j + 1`` names the latest scan published before it (``sonar_seq``),
+      so the events of tick ``j`` wait for that step and that scan: once both are in, every scan of
+      tick ``j`` or earlier is.
 
     Without commands (nobody drives in lockstep) or sensors, an input waits at most
     ``order_timeout_s`` of wall time. Inputs that miss their turn are applied at once (counted).
@@ -181,6 +183,10 @@ class RecognizerShell:
         self._cmd_tick = -1  # the latest tick a velocity command answered
         self._sensor_tick = -1  # the latest tick of an odometry step
         self._done_tick = -1  # the tick of the latest scan or events applied
+        self._scan_heard = self._scan_due = -1  # the highest seq of a scan heard / named by an odometry step
+        self._event_heard = [-1, -1]  # the highest seqs of places confirmed and deleted heard
+        self._event_due = [-1, -1]  # ... named by a velocity command
+        self._event_applied = [-1, -1]  # ... applied
         self._belief_seq = 0
         self._link_seq = 0
         self.counts = {"scans": 0, "localised": 0, "links": 0, "places": 0, "deleted": 0, "map_updates": 0,
@@ -215,7 +221,7 @@ class RecognizerShell:
             core=self.core.snapshot(), poses=list(self._poses)[-n:], applied=sorted(self._applied),
             cmd_tick=self._cmd_tick, sensor_tick=self._sensor_tick, done_tick=self._done_tick,
             belief_seq=self._belief_seq, link_seq=self._link_seq, last_scan_seq=self._last_scan_seq,
-            latest_stamp=self.latest_stamp, counts=dict(self.counts))
+            latest_stamp=self.latest_stamp, counts=dict(self.counts), event_seqs=tuple(self._event_applied))
 
     def resume(self, ckpt: RecognizerCheckpoint, signatures: dict[int, PlaceSignature]) -> None:
         """Go on from a checkpoint: its places, signatures, belief and links in progress."""
@@ -227,6 +233,11 @@ class RecognizerShell:
         self._belief_seq, self._link_seq, self._last_scan_seq = ckpt.belief_seq, ckpt.link_seq, ckpt.last_scan_seq
         self.latest_stamp = ckpt.latest_stamp
         self.counts.update(ckpt.counts)
+        # what was heard and not applied is gone with the killed process: only what was applied counts
+        # as heard (the explorer's history brings the rest)
+        self._scan_heard = self._scan_due = self._last_scan_seq
+        self._event_applied = list(ckpt.event_seqs)
+        self._event_heard, self._event_due = list(ckpt.event_seqs), list(ckpt.event_seqs)
 
     def _commit(self, links: list[LinkMeasured]) -> None:
         """Before anything of an applied input is published: the links into the log, then the state."""
@@ -249,6 +260,7 @@ class RecognizerShell:
         self.drain()
 
     def on_sonar(self, msg: SonarScan) -> None:
+        self._scan_heard = max(self._scan_heard, msg.seq)
         if msg.seq <= self._last_scan_seq or any(s.seq == msg.seq for s, _ in self._scans):
             self.counts["repeated_scans"] += 1  # the simulator repeats tick 0 until it starts
             last = self._last_belief
@@ -263,13 +275,17 @@ class RecognizerShell:
 
     def on_odometry(self, msg: OdometryStep) -> None:
         self._sensor_tick = max(self._sensor_tick, self._tick(msg.stamp))
+        self._scan_due = max(self._scan_due, msg.sonar_seq)
         self.drain()
 
     def on_command(self, msg: VelocityCommand) -> None:
         self._cmd_tick = max(self._cmd_tick, msg.tick)
+        self._event_due = [max(self._event_due[0], msg.confirmed_seq), max(self._event_due[1], msg.deleted_seq)]
         self.drain()
 
     def on_explorer_event(self, msg: PlaceConfirmed | PlaceDeleted) -> None:
+        kind = isinstance(msg, PlaceDeleted)
+        self._event_heard[kind] = max(self._event_heard[kind], msg.seq)
         key = self._event_key(msg)
         if key in self._applied or any(self._event_key(e) == key for e, _ in self._events):
             self.counts["repeated_events"] += 1  # history heard again after a restart
@@ -302,9 +318,11 @@ class RecognizerShell:
                 j = self._tick(ev.stamp)
                 scan_first = bool(self._scans) and self._tick(self._scans[0][0].stamp) <= j
                 if not scan_first:
-                    ready = self._sensor_tick >= j + 1 and bool(self._stamps) and self._stamps[-1] >= ev.stamp - 1e-9
+                    ready = (self._sensor_tick >= j + 1 and self._scan_heard >= self._scan_due and bool(self._stamps)
+                             and self._stamps[-1] >= ev.stamp - 1e-9)
                     if ready or now - since >= timeout:
                         self.counts["order_timeouts"] += not ready
+                        self._give_up_waiting()
                         self._events.pop(0)
                         self._done_tick = max(self._done_tick, j)
                         self._apply_event(ev)
@@ -314,14 +332,24 @@ class RecognizerShell:
                 t = self._tick(scan.stamp)
                 events_first = bool(self._events) and self._tick(self._events[0][0].stamp) < t
                 has_pose = bool(self._stamps) and self._stamps[-1] >= scan.stamp - 1e-9
-                ready = has_pose and (t == 0 or self._cmd_tick >= t - 1)
+                events_in = all(h >= d for h, d in zip(self._event_heard, self._event_due))
+                ready = has_pose and (t == 0 or (self._cmd_tick >= t - 1 and events_in))
                 if not events_first and (ready or (now - since >= timeout and self._stamps)):
                     self.counts["order_timeouts"] += not ready
+                    self._give_up_waiting()
                     self._scans.pop(0)
                     self._done_tick = max(self._done_tick, t)
                     self._step(scan)
                     continue
             return
+
+    def _give_up_waiting(self) -> None:
+        """After an order timeout: what was named and not heard is lost (a restart), not late."""
+        if self._scan_heard < self._scan_due or any(h < d for h, d in zip(self._event_heard, self._event_due)):
+            log.warning("%s: scans up to seq %d and place events up to seqs %s not heard within %.1f s; going on "
+                        "without them", SERVICE, self._scan_due, self._event_due, self.params.order_timeout_s)
+        self._scan_heard = max(self._scan_heard, self._scan_due)
+        self._event_heard = [max(h, d) for h, d in zip(self._event_heard, self._event_due)]
 
     # -- processing -----------------------------------------------------------------------------
     def _pose_at(self, stamp: float) -> DeadReckonedPose | None:
@@ -352,6 +380,8 @@ class RecognizerShell:
             self._publish_link(link)
 
     def _apply_event(self, ev: PlaceConfirmed | PlaceDeleted) -> None:
+        kind = isinstance(ev, PlaceDeleted)
+        self._event_applied[kind] = max(self._event_applied[kind], ev.seq)
         if isinstance(ev, PlaceDeleted):
             self.core.remove_place(ev.place_id)
             self.counts["deleted"] += 1

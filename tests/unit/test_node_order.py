@@ -1,0 +1,202 @@
+"""The explorer's and the recognizer's shells wait for what a message names, not for its order.
+
+zenoh keeps the order of one key's messages, not across keys: a scan can come after the odometry
+step of a later tick, a place event after the velocity command sent after it. The odometry step names
+the latest scan before it (``sonar_seq``) and the command the latest place events (``confirmed_seq``,
+``deleted_seq``); these tests hand the shells their inputs in the wrong order and check that the
+outcome is the one of the right order.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from messages.types import DeadReckonedPose, PlaceConfirmed, VelocityCommand
+from services.dead_reckoning import core as dr_core
+from services.explorer.node import ExplorerNodeParams, ExplorerShell
+from services.place_recognizer.node import PlaceRecognizerNodeParams, RecognizerShell
+from services.sensor_sim import core as sim_core
+from sim.world import load_world
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def frames(n: int):
+    """``n`` ticks of campus with a scan at every tick, and their dead-reckoned poses."""
+    model = sim_core.SimModel(load_world("campus"), sim_core.SensorSimParams(sonar_every_m=0.0, sonar_period_s=0.1))
+    rng = np.random.default_rng(0)
+    state, frame = sim_core.start(model, rng)
+    dr = dr_core.DrState()
+    out = []
+    for _ in range(n):
+        dr, poses = dr_core.step(dr, frame.compass)
+        if frame.odometry is not None:
+            dr, more = dr_core.step(dr, frame.odometry)
+            poses += more
+        out.append((frame, poses[-1]))
+        state, frame = sim_core.step(state, (0.3, 0.0), model, rng)
+    return out
+
+
+def test_odometry_names_the_scans_of_the_ticks_before_it():
+    fs = frames(4)
+    for (before, _), (frame, _) in zip(fs, fs[1:]):
+        assert frame.odometry.sonar_seq == before.sonar.seq == frame.sonar.seq - 1
+
+
+def explorer(clock: Clock) -> tuple[ExplorerShell, list]:
+    sent: list = []
+    shell = ExplorerShell(ExplorerNodeParams(wait_localization=False, localization_timeout_s=2.0),
+                          lambda name, msg: sent.append((name, msg)), clock=clock)
+    return shell, sent
+
+
+def commands(sent: list) -> list[VelocityCommand]:
+    return [m for name, m in sent if name == "cmd_velocity"]
+
+
+def test_explorer_waits_for_the_scan_an_odometry_step_names():
+    clock = Clock()
+    (f0, p0), (f1, p1), (f2, p2) = frames(3)
+    shell, sent = explorer(clock)
+    shell.on_dr_pose(p0)
+    assert [c.tick for c in commands(sent)] == [0]
+    shell.on_sonar(f0.sonar)
+    # tick 1 in order; the scan of tick 1 comes after the odometry step and the pose of tick 2
+    shell.on_odometry(f1.odometry)
+    shell.on_dr_pose(p1)
+    assert [c.tick for c in commands(sent)] == [0, 1]
+    assert shell.counts["scans"] == 1
+    shell.on_odometry(f2.odometry)
+    shell.on_dr_pose(p2)
+    clock.t += 1.0
+    shell.check_timeout()
+    assert [c.tick for c in commands(sent)] == [0, 1], "tick 2 answered before the scan of tick 1 was heard"
+    shell.on_sonar(f1.sonar)
+    assert [c.tick for c in commands(sent)] == [0, 1, 2]
+    assert shell.counts["scans"] == 2 and shell.counts["late_scans"] == 0 and shell.counts["scan_timeouts"] == 0
+
+
+def test_explorer_stops_waiting_for_a_scan_lost_for_good():
+    clock = Clock()
+    (f0, p0), (f1, p1), (f2, p2), (f3, p3) = frames(4)
+    shell, sent = explorer(clock)
+    shell.on_dr_pose(p0)
+    shell.on_odometry(f1.odometry)  # the scan of tick 0 never comes
+    shell.on_dr_pose(p1)
+    assert [c.tick for c in commands(sent)] == [0]
+    clock.t += 2.5
+    shell.check_timeout()
+    assert [c.tick for c in commands(sent)] == [0, 1]
+    assert shell.counts["scan_timeouts"] == 1 and shell.counts["scans"] == 0
+    shell.on_sonar(f1.sonar)  # from here on in order: no wait
+    shell.on_odometry(f2.odometry)
+    shell.on_dr_pose(p2)
+    assert [c.tick for c in commands(sent)] == [0, 1, 2]
+    assert shell.counts["scan_timeouts"] == 1 and shell.counts["scans"] == 1
+
+
+def test_explorer_command_names_the_place_events_before_it():
+    clock = Clock()
+    shell, sent = explorer(clock)
+    ticks = frames(40)
+    for frame, pose in ticks:
+        if frame.odometry is not None:
+            shell.on_odometry(frame.odometry)
+        shell.on_dr_pose(pose)
+        shell.on_sonar(frame.sonar)
+    seen = {"places_confirmed": -1, "places_deleted": -1}
+    checked = 0
+    for name, msg in sent:
+        if name in seen:
+            seen[name] = msg.seq
+        elif name == "cmd_velocity":
+            assert (msg.confirmed_seq, msg.deleted_seq) == (seen["places_confirmed"], seen["places_deleted"])
+            checked += seen["places_confirmed"] >= 0
+    assert checked > 0, "no place was confirmed in 4 s of driving"
+
+
+def recognizer(clock: Clock) -> tuple[RecognizerShell, list]:
+    beliefs: list = []
+    shell = RecognizerShell(PlaceRecognizerNodeParams(order_timeout_s=0.5), beliefs.append, lambda msg: None,
+                            clock=clock)
+    return shell, beliefs
+
+
+def confirmation(pose: DeadReckonedPose, seq: int = 0) -> PlaceConfirmed:
+    return PlaceConfirmed(stamp=pose.stamp, seq=seq, place_id=7, x_m=pose.compass.x_m, y_m=pose.compass.y_m)
+
+
+def command(pose: DeadReckonedPose, tick: int, confirmed_seq: int) -> VelocityCommand:
+    return VelocityCommand(stamp=pose.stamp, seq=tick, v_mps=0.3, omega_radps=0.0, tick=tick,
+                           confirmed_seq=confirmed_seq)
+
+
+def feed_tick(shell: RecognizerShell, frame, pose: DeadReckonedPose) -> None:
+    if frame.odometry is not None:
+        shell.on_odometry(frame.odometry)
+    shell.on_dr_pose(pose)
+    shell.on_sonar(frame.sonar)
+
+
+def test_recognizer_applies_a_place_event_heard_after_the_command_before_the_next_scan():
+    clock = Clock()
+    (f0, p0), (f1, p1) = frames(2)
+    shell, beliefs = recognizer(clock)
+    feed_tick(shell, f0, p0)
+    assert len(beliefs) == 1
+    shell.on_command(command(p0, 0, confirmed_seq=0))  # the explorer confirmed place 7 at tick 0
+    feed_tick(shell, f1, p1)
+    clock.t += 0.1
+    shell.drain()
+    assert len(beliefs) == 1, "the scan of tick 1 was localised before the place event it comes after"
+    shell.on_explorer_event(confirmation(p0))
+    assert len(beliefs) == 2
+    assert beliefs[-1].place_id == 7  # localised at the place confirmed before it
+    assert shell.counts["late_events"] == 0 and shell.counts["order_timeouts"] == 0
+
+
+def test_recognizer_applies_a_place_event_after_the_scan_its_odometry_step_names():
+    clock = Clock()
+    (f0, p0), (f1, p1), (f2, p2) = frames(3)
+    shell, beliefs = recognizer(clock)
+    feed_tick(shell, f0, p0)
+    shell.on_command(command(p0, 0, confirmed_seq=-1))
+    # tick 1: odometry and pose, the scan late; the explorer confirms a place at tick 1
+    shell.on_odometry(f1.odometry)
+    shell.on_dr_pose(p1)
+    shell.on_command(command(p1, 1, confirmed_seq=0))
+    shell.on_odometry(f2.odometry)
+    shell.on_dr_pose(p2)
+    shell.on_explorer_event(confirmation(p1))
+    clock.t += 0.1
+    shell.drain()
+    assert shell.counts["places"] == 0, "the place of tick 1 was applied before the scan of tick 1"
+    shell.on_sonar(f1.sonar)
+    assert shell.counts["places"] == 1 and len(beliefs) == 2
+    assert beliefs[-1].place_id != 7  # the scan of tick 1 was localised before place 7 existed
+    shell.on_sonar(f2.sonar)
+    assert len(beliefs) == 3 and beliefs[-1].place_id == 7
+    assert shell.counts["late_events"] == 0 and shell.counts["order_timeouts"] == 0
+
+
+def test_recognizer_stops_waiting_for_a_place_event_lost_for_good():
+    clock = Clock()
+    (f0, p0), (f1, p1), (f2, p2) = frames(3)
+    shell, beliefs = recognizer(clock)
+    feed_tick(shell, f0, p0)
+    shell.on_command(command(p0, 0, confirmed_seq=0))  # place event 0 never comes
+    feed_tick(shell, f1, p1)
+    assert len(beliefs) == 1
+    clock.t += 0.6
+    shell.drain()
+    assert len(beliefs) == 2 and shell.counts["order_timeouts"] == 1
+    shell.on_command(command(p1, 1, confirmed_seq=0))
+    feed_tick(shell, f2, p2)  # no second wait for the same event
+    assert len(beliefs) == 3 and shell.counts["order_timeouts"] == 1
