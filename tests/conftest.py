@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -81,6 +82,25 @@ def processes() -> Iterator[Processes]:
         yield procs
     finally:
         procs.cleanup()
+
+
+# A lockstep run's wall-time limits, raised so that no input of a loaded machine misses its turn; the
+# explorer and the recognizer keep their own place centres (relaxed coordinates arrive when the relaxer
+# is done, not at a tick).
+PATIENT = {"explorer": ["--no-follow-map", "--localization-timeout-s", "30"],
+           "place_recognizer": ["--no-follow-map", "--order-timeout-s", "30"],
+           "sensor_sim": ["--lockstep-timeout-s", "30"]}
+
+
+def reproducible_graph(tmp_path: Path) -> Path:
+    """deploy/graph.json with the PATIENT arguments, written to ``tmp_path``: two lockstep runs of a
+    seed make the same map (docs/runtime.md)."""
+    graph = json.loads((REPO / "deploy" / "graph.json").read_text())
+    for s in graph["services"]:
+        s["args"].extend(PATIENT.get(s["name"], []))
+    path = tmp_path / "graph.json"
+    path.write_text(json.dumps(graph))
+    return path
 
 
 def wait_until(predicate, timeout_s: float, period_s: float = 0.02) -> bool:
