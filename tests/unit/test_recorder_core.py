@@ -250,4 +250,8 @@ def test_params_are_checked():
         RecorderParams(trail_points=1)
     with pytest.raises(ValueError):
         RecorderParams(grid_timeout_s=0.0)
+    with pytest.raises(ValueError):
+        RecorderParams(flush_period_s=0.0)
+    with pytest.raises(ValueError):
+        RecorderParams(flush_bytes=0)
     assert RecorderParams().grid_every_versions == 10
