@@ -110,9 +110,9 @@ class ExplorerShell:
     of tick ``k`` is and the scan it names (``sonar_seq``) has been heard: zenoh keeps the order of
     one key's messages, not across keys, so a scan can come after a later odometry step. The
     localization comes later still, so the answer waits for all of them, at most
-    ``localization_timeout_s`` (counted in health; the tick is then answered without). A pose of a tick already answered
-    (the simulator repeats tick 0 until its first command arrives) is answered again with the same
-    command. Once exploration is complete every tick is answered with zero velocity.
+    ``localization_timeout_s`` (counted in health; the tick is then answered without). A pose of a
+    tick already answered (the simulator repeats tick 0 until its first command arrives) is answered
+    again with the same command. Once exploration is complete every tick is answered with zero velocity.
     """
 
     def __init__(self, params: ExplorerNodeParams, publish, clock=time.monotonic, save=None,
