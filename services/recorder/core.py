@@ -43,7 +43,8 @@ class RecorderParams(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
     arrow_length_m: float = 0.4  # length of the arrow that shows a pose's heading
     # The Rerun SDK holds memory for every chunk it sends (rerun-io/rerun#12623): it sends what was
     # logged every this many wall seconds (or once this many bytes wait), as few large chunks.
-    flush_period_s: float = 2.0
+    flush_period_s: float = 5.0
+    viewer_flush_period_s: float = 1.0  # ... with a viewer attached, which would otherwise lag behind
     flush_bytes: int = 64 << 20
 
     def __post_init__(self) -> None:
@@ -57,9 +58,9 @@ class RecorderParams(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
                      "grid_resolution_m"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be at least 0, got {getattr(self, name)}")
-        if not self.flush_period_s > 0 or self.flush_bytes < 1:
-            raise ValueError(f"flush_period_s and flush_bytes must be positive, got {self.flush_period_s}, "
-                             f"{self.flush_bytes}")
+        if not self.flush_period_s > 0 or not self.viewer_flush_period_s > 0 or self.flush_bytes < 1:
+            raise ValueError("flush_period_s, viewer_flush_period_s and flush_bytes must be positive, got "
+                             f"{self.flush_period_s}, {self.viewer_flush_period_s}, {self.flush_bytes}")
         if not self.grid_timeout_s > 0 or not self.arrow_length_m > 0:
             raise ValueError("grid_timeout_s and arrow_length_m must be positive")
 

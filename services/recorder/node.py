@@ -112,7 +112,8 @@ def open_recording(rrd_path: Path, *, viewer: bool = False, viewer_port: int = 9
     """
     rrd_path.parent.mkdir(parents=True, exist_ok=True)
     p = params or RecorderParams()
-    batching = rr.ChunkBatcherConfig(flush_tick=p.flush_period_s, flush_num_bytes=p.flush_bytes,
+    batching = rr.ChunkBatcherConfig(flush_tick=p.viewer_flush_period_s if viewer else p.flush_period_s,
+                                     flush_num_bytes=p.flush_bytes,
                                      flush_num_rows=rr.ChunkBatcherConfig.DEFAULT().flush_num_rows)
     rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id, batcher_config=batching)
     sinks: list = [rr.FileSink(str(rrd_path))]

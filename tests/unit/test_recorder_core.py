@@ -253,5 +253,7 @@ def test_params_are_checked():
     with pytest.raises(ValueError):
         RecorderParams(flush_period_s=0.0)
     with pytest.raises(ValueError):
+        RecorderParams(viewer_flush_period_s=-1.0)
+    with pytest.raises(ValueError):
         RecorderParams(flush_bytes=0)
     assert RecorderParams().grid_every_versions == 10
