@@ -245,8 +245,8 @@ def test_garbage_on_every_key_leaves_the_map_as_a_clean_run_makes_it(tmp_path):
     """Garbage on every key during a whole run: every service logs it, nothing is lost, and the map
     is the clean run's.
 
-    Both runs are lockstep with waits no input outlasts (tests.conftest.PATIENT): each service waits for the inputs
-    the messages it has name (docs/runtime.md), so two runs of a seed make the same map."""
+    Both runs are lockstep with waits no input outlasts (tests.conftest.PATIENT): each service waits
+    for the inputs its messages name (docs/runtime.md), so two runs of a seed make the same map."""
     pool = _garbage_pool()
     graph = reproducible_graph(tmp_path)
     _finish(_run(tmp_path / "clean", graph))
