@@ -376,10 +376,10 @@ def run(session: zenoh.Session, params: ExplorerNodeParams = ExplorerNodeParams(
 
         node.spin(stop, tick=on_tick, period_s=0.05)
         update_detail()
-        log.info("%s: %d ticks, %d confirmed places, complete=%s; %d localization timeouts, %d late scans, "
-                 "%d skipped poses", SERVICE, shell.counts["ticks"], int(node.detail["confirmed"]),
-                 bool(shell.counts["complete"]), shell.counts["localization_timeouts"], shell.counts["late_scans"],
-                 shell.counts["skipped_poses"])
+        log.info("%s: %d ticks, %d confirmed places, complete=%s; %d localization timeouts, %d scan timeouts, "
+                 "%d late scans, %d skipped poses", SERVICE, shell.counts["ticks"], int(node.detail["confirmed"]),
+                 bool(shell.counts["complete"]), shell.counts["localization_timeouts"], shell.counts["scan_timeouts"],
+                 shell.counts["late_scans"], shell.counts["skipped_poses"])
     return shell
 
 
