@@ -104,17 +104,15 @@ def blueprint() -> rrb.Blueprint:
     )
 
 
-def open_recording(rrd_path: Path, *, viewer: bool = False, viewer_port: int = 9876,
-                   recording_id: str | None = None, params: RecorderParams | None = None) -> rr.RecordingStream:
+def open_recording(rrd_path: Path, params: RecorderParams, *, viewer: bool = False, viewer_port: int = 9876,
+                   recording_id: str | None = None) -> rr.RecordingStream:
     """A stream to ``rrd_path`` (parents created) and, with ``viewer``, to a spawned viewer as well.
 
     A viewer that cannot be started is logged and left out; the file is written either way.
     """
     rrd_path.parent.mkdir(parents=True, exist_ok=True)
-    p = params or RecorderParams()
-    batching = rr.ChunkBatcherConfig(flush_tick=p.viewer_flush_period_s if viewer else p.flush_period_s,
-                                     flush_num_bytes=p.flush_bytes,
-                                     flush_num_rows=rr.ChunkBatcherConfig.DEFAULT().flush_num_rows)
+    batching = rr.ChunkBatcherConfig(flush_tick=params.viewer_flush_period_s if viewer else params.flush_period_s,
+                                     flush_num_bytes=params.flush_bytes)
     rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id, batcher_config=batching)
     sinks: list = [rr.FileSink(str(rrd_path))]
     if viewer:
@@ -444,7 +442,7 @@ def run(session: zenoh.Session, params: RecorderParams, *, rrd_path: Path, robot
             log.info("recorder: --duration-s reached: stopping")
             stop.set()
 
-    rec = open_recording(rrd_path, viewer=viewer, viewer_port=viewer_port, recording_id=recording_id, params=params)
+    rec = open_recording(rrd_path, params, viewer=viewer, viewer_port=viewer_port, recording_id=recording_id)
     recorder = None
     try:
         with Node(session, "recorder", robot=robot) as node:
