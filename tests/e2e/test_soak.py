@@ -14,13 +14,14 @@ import zenoh
 
 from messages import topics
 from messages.types import Health
-from services.runtime import QueryFailed, loopback_config, query
+from services.launch.graph import load_graph
+from services.runtime import QueryFailed, deploy_file, loopback_config, query
 from services.runtime.procs import free_port, stop_group
 
 # Simulated seconds of the soak: CI runs this small size; RELAXMAP_SOAK_SIM_S=3600 soaks for an hour
 # of simulated time.
 SOAK_SIM_S = float(os.environ.get("RELAXMAP_SOAK_SIM_S", "300"))
-SERVICES = ("sensor_sim", "dead_reckoning", "place_recognizer", "explorer", "relaxer", "recorder")
+SERVICES = load_graph(deploy_file("graph.json")).names()  # the services `relaxmap run` starts
 SAMPLE_PERIOD_S = 0.2
 HEALTH_EVERY = 10  # samples between two health queries (the largest event queue of each service)
 # Bounded memory: after the first third of the run (imports, first allocations, the allocator's
