@@ -51,7 +51,9 @@ class OnlineParams(msgspec.Struct, frozen=True, kw_only=True):
     # how the noise parameters are re-estimated: "reml" (restricted maximum likelihood after each loop
     # closure, held in between), "paper" (Eqs. 12-14 after every sweep, as Figure 3), "fixed"
     noise_estimation: str = "reml"
-    reml_min_loops: int = 3  # REML needs this many independent loops (links - places + parts)
+    reml_min_loops: int = 20  # REML needs this many independent loops (links - places + parts): with
+    # fewer, its three parameters rest on a handful of residuals and can sink to a floor (a map bent by
+    # metres with every link right)
     reml_loop_growth: float = 1.25  # ... and re-runs when the loops grew by this factor since the last
     reml_max_rounds: int = 30  # EM rounds per re-estimation (warm-started from the current noise)
     reml_samples: int = 16  # posterior samples of the EM's E-step
