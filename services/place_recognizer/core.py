@@ -28,7 +28,7 @@ class PlaceRecognizerParams:
     logodds_threshold: float = 0.2  # cells with |log-odds| below this count as unknown
     echo_thickness_m: float = 0.15  # radial thickness of the occupied arc of an echo
     max_shift_m: float = 1.5  # largest offset searched by the histogram match, per axis
-    match_error_k_m2: float = 1e-3  # k of Eqs. 20-21 (the paper's 1 m^2 was for its own Match scale)
+    match_error_k_m2: float = 3e-3  # k of Eqs. 20-21 (the paper's 1 m^2 was for its own Match scale)
     min_match_spread: float = 0.02  # floor of M* - M-bar in Eqs. 20-21
     observation_window_m: float = 0.5  # scans over this much recent path build one observation grid
     observation_max_scans: int = 8  # at most this many scans in one observation grid
@@ -40,8 +40,12 @@ class PlaceRecognizerParams:
     uniform_transition: float = 1e-4  # fraction of belief mass spread per update near the robot (relocalisation)
     unknown_offset_var_m2: float = 0.25  # offset variance of mass arriving without a position
     relocalise_std_m: float = 1.5  # relocalisation mass goes to places within about this of the robot
-    match_sharpness: float = 40.0  # beta: likelihood exp(beta (M - 1)) of a match score M
-    new_place_match: float = 0.9  # virtual match score of the "no known place" hypothesis
+    match_weights: tuple[float, float, float] = (1.0, 0.05, 0.05)  # weights of the occupied, empty and
+    # unknown counts in Eq. 19 (equal in the paper): the many empty and unknown cells depend on where the
+    # sonar looked from more than on the place, and would drown the walls
+    match_axes: str = "min"  # a place's score from its x and y scores: "min" (both must fit) or "mean"
+    match_sharpness: float = 25.0  # beta: likelihood exp(beta (M - 1)) of a match score M
+    new_place_match: float = 0.7  # virtual match score of the "no known place" hypothesis
     confirmed_probability: float = 0.95  # belief in a place at the moment it is confirmed
     settle_observations: int = 3  # observations at a revisited place before its link is measured
     link_fuse_gate_m: float = 1.0  # a later traversal further than this from the fused link is rejected
@@ -208,9 +212,10 @@ class PlaceRecognizer:
     -----
     Observation: the scans of the last ``observation_window_m`` of path, placed by dead reckoning,
     build a local grid centred on the robot, reduced to x and y histograms; each place's stored
-    histograms are matched against them over all shifts (Eq. 19). The best shifts times the cell
-    size are the offsets ``r*`` (robot minus centre) and Eqs. 20-21 their variances. The score of a
-    place is the mean of its x and y best scores. The belief is the hidden-Markov filter of
+    histograms are matched against them over all shifts (Eq. 19, with the labels weighted by
+    ``match_weights``). The best shifts times the cell size are the offsets ``r*`` (robot minus
+    centre) and Eqs. 20-21 their variances. The score of a place is the lower of its x and y best
+    scores (``match_axes``). The belief is the hidden-Markov filter of
     :mod:`services.place_recognizer.belief`. The robot is *at* place ``j`` when ``j`` is the most
     probable hypothesis, with probability at least ``localized_probability`` and a filtered offset
     no longer than ``place_radius_m``; otherwise it is between places (-1).
@@ -478,7 +483,8 @@ class PlaceRecognizer:
         Returns
         -------
         scores : numpy.ndarray
-            ``(P,)`` in belief order, the mean of the x and y best scores; NaN without signature.
+            ``(P,)`` in belief order, the lower (or the mean, ``match_axes``) of the x and y best
+            scores; NaN without signature.
         offsets, variances : numpy.ndarray
             ``(P, 2)``: ``r*`` (best shift times cell size, Section 4.3) and ``sigma*^2`` (Eqs. 20-21).
         """
@@ -495,9 +501,13 @@ class PlaceRecognizer:
         sx = np.stack([self._signatures[int(self.belief.ids[r])].hist.x for r in rows])
         sy = np.stack([self._signatures[int(self.belief.ids[r])].hist.y for r in rows])
         max_shift = int(round(p.max_shift_m / p.cell_m))
-        mx, my = match_axis(obs.x, sx, max_shift), match_axis(obs.y, sy, max_shift)
+        w = p.match_weights
+        mx, my = match_axis(obs.x, sx, max_shift, w), match_axis(obs.y, sy, max_shift, w)
         best = [self._plausible_best(m, rows, axis, max_shift) for axis, m in enumerate((mx, my))]
-        scores[rows] = 0.5 * (best[0][1] + best[1][1])
+        if p.match_axes == "min":
+            scores[rows] = np.minimum(best[0][1], best[1][1])
+        else:
+            scores[rows] = 0.5 * (best[0][1] + best[1][1])
         offsets[rows] = np.stack([best[0][0], best[1][0]], axis=1) * p.cell_m
         variances[rows] = np.stack([
             match_error_variance(best[0][1], mx.mean_score, k_m2=p.match_error_k_m2, min_spread=p.min_match_spread),

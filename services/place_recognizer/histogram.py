@@ -56,7 +56,8 @@ def histograms(labels: np.ndarray) -> Histograms:
     return Histograms(x=x, y=y)
 
 
-def match_axis(observed: np.ndarray, stored: np.ndarray, max_shift: int) -> AxisMatch:
+def match_axis(observed: np.ndarray, stored: np.ndarray, max_shift: int,
+               weights: tuple[float, float, float] | None = None) -> AxisMatch:
     """Match an observed histogram against stored ones over every shift (Eq. 19).
 
     Parameters
@@ -67,6 +68,8 @@ def match_axis(observed: np.ndarray, stored: np.ndarray, max_shift: int) -> Axis
         Shape ``(..., 3, n)``: one or many stored histograms (e.g. one per place).
     max_shift : int
         Shifts ``s`` in ``-max_shift..max_shift`` cells are tried.
+    weights : tuple of float, optional
+        Weights of the occupied, empty and unknown counts; ``None`` is Eq. 19's equal weights.
 
     Returns
     -------
@@ -81,7 +84,8 @@ def match_axis(observed: np.ndarray, stored: np.ndarray, max_shift: int) -> Axis
 
     over the elements ``j`` where both exist, with ``w(s) = sum_j max(n^o_j, n^s_{j+s})`` (``n`` the
     cell count of an element), so ``0 <= Match <= 1`` and ``Match = 1`` exactly when the overlapping
-    elements are identical. If the observation grid is centred at the robot ``p`` and the stored one
+    elements are identical. With ``weights`` each label's counts are scaled by its weight first (in
+    the minima and in ``n``). If the observation grid is centred at the robot ``p`` and the stored one
     at the place centre ``c``, the best ``s`` is ``(p - c) / cell``: the robot's offset from the
     place centre in cells. All shifts and all stored histograms are evaluated at once through a
     sliding window over the stored histograms padded with ``max_shift`` missing elements each side.
@@ -95,6 +99,9 @@ def match_axis(observed: np.ndarray, stored: np.ndarray, max_shift: int) -> Axis
     """
     observed = np.asarray(observed, dtype=float)
     stored = np.asarray(stored, dtype=float)
+    if weights is not None:
+        w = np.asarray(weights, dtype=float)[:, None]
+        observed, stored = observed * w, stored * w
     n = observed.shape[-1]
     pad = [(0, 0)] * (stored.ndim - 1) + [(max_shift, max_shift)]
     padded = np.pad(stored, pad)  # missing elements are zero: they add nothing to the minima

@@ -153,3 +153,35 @@ def test_two_different_rooms_score_lower_than_a_room_with_itself():
     assert score(a, a) == pytest.approx(1.0)
     assert score(b, a) < score(a_again, a) - 0.05
     assert score(a, b) < score(a_again, a) - 0.05
+
+
+def test_weighted_match():
+    """Weights scale each label's counts: equal weights are Eq. 19, and a weighted match is Eq. 19 of the
+    scaled histograms (a histogram with itself still scores 1 at its shift)."""
+    rng = np.random.default_rng(5)
+    a = histograms(rng.integers(0, 3, size=(31, 31)).astype(np.int8)).x
+    b = histograms(rng.integers(0, 3, size=(31, 31)).astype(np.int8)).x
+    np.testing.assert_allclose(match_axis(a, b, 6, (1.0, 1.0, 1.0)).scores, match_axis(a, b, 6).scores)
+    w = np.array([1.0, 0.05, 0.05])[:, None]
+    np.testing.assert_allclose(match_axis(a, b, 6, (1.0, 0.05, 0.05)).scores, match_axis(a * w, b * w, 6).scores)
+    m = match_axis(np.roll(a, -2, axis=1), a, 6, (1.0, 0.05, 0.05))
+    assert int(m.best_shift) == 2 and float(m.best_score) == pytest.approx(1.0)
+    # a weight of zero leaves that label out: histograms that differ only there score 1
+    c = a.copy()
+    c[2] = rng.permutation(c[2])
+    assert float(match_axis(c, a, 0, (1.0, 1.0, 0.0)).best_score) == pytest.approx(
+        float(match_axis(c[:2], a[:2], 0).best_score))
+
+
+def test_weighting_the_walls_separates_two_rooms_further():
+    """The default weights (walls first) widen the gap between a room seen again from other headings and
+    another room, relative to Eq. 19's equal weights."""
+    a = _room_hist(1.0, 1.5, ROOM)
+    a_again = _room_hist(1.0, 1.5, ROOM, headings=(0.1, 0.3))
+    b = _room_hist(1.0, 1.5, OTHER_ROOM)
+
+    def score(o, s, w):
+        return min(float(match_axis(o.x, s.x, 10, w).best_score), float(match_axis(o.y, s.y, 10, w).best_score))
+
+    gap = {w: score(a_again, a, w) - score(b, a, w) for w in ((1.0, 1.0, 1.0), (1.0, 0.05, 0.05))}
+    assert gap[(1.0, 0.05, 0.05)] > gap[(1.0, 1.0, 1.0)] > 0.0

@@ -73,7 +73,7 @@ def test_first_traversal_links_match_the_true_displacement(drive):
         assert link.theta_rad == pytest.approx(0.0, abs=0.03)
         assert link.traversals == 1
         assert link.mean_step_m == pytest.approx(STEP_M)
-        assert link.steps == 20  # the 1 m centre to centre in 5 cm steps
+        assert link.steps == round(link.d_m / STEP_M)  # the whole centre-to-centre distance in 5 cm steps
 
 
 def test_known_places_are_recognised_on_the_way_back(drive):
