@@ -106,8 +106,22 @@ def clear_towards(heading_rad: float, scan: SonarScan, direction_rad: float, len
 
 def open_directions(heading_rad: float, scan: SonarScan, *, directions: int, length_m: float,
                     half_width_m: float, sample_step_m: float, edge_length_m: float | None = None) -> list[float]:
-    """World directions ``2 pi k / directions`` in which :func:`clear_towards` sees ``length_m`` free."""
-    cands = [2.0 * np.pi * k / directions for k in range(directions)]
+    """World directions ``2 pi k / directions`` in which :func:`clear_towards` sees ``length_m`` free,
+    coarse to fine: east, west, then the halves between them, their halves, and so on (with 16, the
+    four axes, the diagonals, then the eight between), so that a caller keeping the first of two close
+    candidates builds the coarse lattice where all are open and the fine directions only fill gaps.
+
+    Examples
+    --------
+    >>> [k for k in _coarse_to_fine(8)]
+    [0, 4, 2, 6, 1, 3, 5, 7]
+    """
+    cands = [2.0 * np.pi * k / directions for k in _coarse_to_fine(directions)]
     return [float(wrap_angle(c)) for c in cands
             if clear_towards(heading_rad, scan, c, length_m, half_width_m=half_width_m,
                              sample_step_m=sample_step_m, edge_length_m=edge_length_m)]
+
+
+def _coarse_to_fine(n: int) -> list[int]:
+    """``0..n-1`` ordered by how coarse a subdivision of the circle each index belongs to."""
+    return sorted(range(n), key=lambda k: (-(k & -k) if k else -n - 1, k))

@@ -24,7 +24,9 @@ class ExplorerParams:
     """Parameters of the explorer core (defaults in code; deploy files only override)."""
 
     place_spacing_m: float = 1.0  # distance of a predicted place from the confirmed place it comes from
-    directions: int = 8  # candidate directions of predicted places, evenly spaced from east (world frame)
+    directions: int = 16  # candidate directions of predicted places, evenly spaced from east (world frame):
+    # with 8, a door between two places of a corridor lay in no direction of either, and its room stayed
+    # unexplored
     open_distance_m: float = 1.5  # free length the sonar must show along a direction for it to be open
     open_half_width_m: float = 0.2  # half width of the corridor that must be seen free (robot radius)
     open_edge_distance_m: float = 1.0  # the corridor's edges must be seen free this far (its centre line further)
