@@ -277,6 +277,7 @@ class Explorer:
         self._leg_start_s = 0.0
         self._blocked_since: float | None = None
         self._fix_after_s = -math.inf  # localizations older than this are stale (before a confirmation)
+        self._counts: tuple[int, int, int, int] | None = None  # places, links, confirmed, traversed or inferred
 
     def snapshot(self) -> ExplorerState:
         """The explorer's state (copies), for :meth:`restore`."""
@@ -292,6 +293,7 @@ class Explorer:
 
     def restore_snapshot(self, state: ExplorerState) -> None:
         """Take up the state of :meth:`snapshot` (of an explorer with the same parameters)."""
+        self._counts = None
         self.places = {q.place_id: Place(**vars(q)) for q in state.places}
         self.links = {_key(lk.a, lk.b): Link(**vars(lk)) for lk in state.links}
         self.robot_xy = tuple(state.robot_xy) if state.robot_xy is not None else None
@@ -394,6 +396,7 @@ class Explorer:
         if at_place not in places:
             raise ValueError(f"the robot's place {at_place} is not among the {len(places)} places")
         p = self.params
+        self._counts = None
         for pid, (x, y) in sorted(places.items()):
             self.places[pid] = Place(pid, float(x), float(y), True, NO_PLACE)
         for a, b, traversals in links:
@@ -701,11 +704,17 @@ class Explorer:
         else:
             cmd = Command(0.0, 0.0, False, math.inf)
             self._moving.clear()
-        confirmed = sum(1 for q in self.places.values() if q.confirmed)
+        counts = self._counts
+        if events or counts is None or counts[:2] != (len(self.places), len(self.links)):
+            # counted again only when something changed: every change of a step comes with an event
+            counts = self._counts = (len(self.places), len(self.links),
+                                     sum(1 for q in self.places.values() if q.confirmed),
+                                     sum(1 for k in self.links.values() if k.kind != PREDICTED))
+        confirmed = counts[2]
         status = ExplorerStatus(complete=self.complete, confirmed=confirmed,
                                 predicted=len(self.places) - confirmed,
                                 target_id=self.target if self.leg is not None else NO_PLACE)
-        diag = {"links": float(sum(1 for k in self.links.values() if k.kind != PREDICTED)),
+        diag = {"links": float(counts[3]),
                 "loop_queue": float(len(self.loop_queue)), "leg_age_s": now_s - self._leg_start_s
                 if self.leg is not None else 0.0, "stalls": float(self.stalls)}
         return ExplorerOutput(events=tuple(events), command=cmd, status=status, diagnostics=diag)
