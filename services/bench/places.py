@@ -50,7 +50,7 @@ def main(args: argparse.Namespace) -> int:
     probe = free_points(1)[0]
     for n in args.places:
         timings = {}
-        for label, min_prior in (("all", 0.0), ("gated", 1e-4)):
+        for label, min_prior in (("all", 0.0), ("gated", PlaceRecognizerParams().match_min_prior)):
             rec = PlaceRecognizer(PlaceRecognizerParams(match_min_prior=min_prior))
             for i, (x, y) in enumerate(free_points(n)):
                 dr = dr_at(x, y, i)
@@ -63,8 +63,9 @@ def main(args: argparse.Namespace) -> int:
         rows.append((n, timings["all"] * 1e3, timings["gated"] * 1e3, one * 1e6, timings["all"] / one))
     print_table("Recognition: one sonar scan against the map", ["places", "ms / scan (all matched)",
                 "ms / scan (gated by prior)", "one match (us)", "all / one match"], rows,
-                note="Reference: the x and y histogram match of one place (Eq. 19, all shifts), same run. "
-                     "Gated: match_min_prior=1e-4, only places at least that probable before the scan are matched.")
+                note="Reference: the x and y histogram match of one place (Eq. 19, all shifts), same run. Gated: "
+                     f"match_min_prior={PlaceRecognizerParams().match_min_prior:g} (the default), only places "
+                     "at least that probable before the scan are matched.")
 
     # -- exploration: the in-process loop, wall time per simulated minute -------------------------------
     run = InProcessRun(world, InProcessParams(seed=args.seed, max_sim_time_s=args.sim_s, stop_when_complete=False))

@@ -63,7 +63,8 @@ def _logsumexp(a: np.ndarray, axis: int) -> np.ndarray:
 
 def predict(belief: Belief, displacement_xy: np.ndarray, *, transition_std_m: float,
             transition_var_per_m_m2: float, place_radius_m: float, uniform_transition: float,
-            unknown_offset_var_m2: float, relocalise_std_m: float = math.inf) -> Belief:
+            unknown_offset_var_m2: float, relocalise_std_m: float = math.inf,
+            min_source_probability: float = 1e-12) -> Belief:
     """Move the belief by a dead-reckoned displacement (the prior of the next observation).
 
     Notes
@@ -83,16 +84,22 @@ def predict(belief: Belief, displacement_xy: np.ndarray, *, transition_std_m: fl
     loop, not by ten: a look-alike place across the building gets no mass to jump to. That part
     carries no position, so it arrives at the centre with ``unknown_offset_var_m2``.
     The offsets of each target (and the "none" position) are the moment-matched mixture of what
-    arrives (mean and variance per axis).
+    arrives (mean and variance per axis). Only hypotheses at least ``min_source_probability``
+    probable are moved as sources (the others' mass is dropped before normalising): most places of a
+    large map hold next to nothing, and moving every one to every other costs ``O(P^2)``.
     """
     d = np.asarray(displacement_xy, dtype=float)
     dist = float(np.hypot(*d))
     P = belief.ids.size
-    pos = np.vstack([belief.centres + belief.offsets + d, belief.none_xy + d])  # (S, 2)
-    src_var = np.vstack([belief.offset_vars, np.full((1, 2), belief.none_var_m2)])
+    ps_all = np.append(belief.probs, belief.none_prob)
+    src = np.flatnonzero(ps_all >= min_source_probability)  # sources: rows of places, P for "none"
+    if src.size == 0:
+        src = np.array([int(np.argmax(ps_all))])
+    ps = ps_all[src]
+    pos = np.vstack([belief.centres + belief.offsets + d, belief.none_xy + d])[src]  # (S, 2)
+    src_var = np.vstack([belief.offset_vars, np.full((1, 2), belief.none_var_m2)])[src]
     src_var = src_var + transition_var_per_m_m2 * dist
     kvar = src_var.mean(axis=1) + transition_std_m**2  # (S,)
-    ps = np.append(belief.probs, belief.none_prob)
     diff = pos[:, None, :] - belief.centres[None, :, :]  # (S, P, 2): offset from each target centre
     log_k = np.concatenate(
         [-(diff**2).sum(axis=-1) / (2.0 * kvar[:, None]), (-(place_radius_m**2) / (2.0 * kvar))[:, None]],
@@ -104,7 +111,7 @@ def predict(belief: Belief, displacement_xy: np.ndarray, *, transition_std_m: fl
     if math.isfinite(relocalise_std_m) and P:
         expected = (ps[:, None] * pos).sum(axis=0) / max(ps.sum(), 1e-300)
         g[:P] = np.exp(-((belief.centres - expected) ** 2).sum(axis=1) / (2.0 * relocalise_std_m**2))
-    uniform = uniform_transition * ps.sum() * g / g.sum()  # (P + 1,)
+    uniform = uniform_transition * ps_all.sum() * g / g.sum()  # (P + 1,)
     prior = informed.sum(axis=0) + uniform  # (P + 1,)
 
     w = informed[:, :P]  # (S, P)

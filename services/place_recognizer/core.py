@@ -50,7 +50,7 @@ class PlaceRecognizerParams:
     settle_observations: int = 3  # observations at a revisited place before its link is measured
     link_fuse_gate_m: float = 1.0  # a later traversal further than this from the fused link is rejected
     max_hypotheses: int = 5  # hypotheses reported in the localization (most probable first)
-    match_min_prior: float = 0.0  # places less probable than this before the scan are not matched
+    match_min_prior: float = 1e-12  # places less probable than this before the scan are not matched
     link_map_gate_m: float = 0.75  # a traversal further than this from the centres' displacement is rejected
     arrival_gate_m: float = 1.0  # an arrival further than this from where dead reckoning puts the robot
     arrival_gate_per_m: float = 0.05  # ... plus this per metre travelled since the last place is a jump
@@ -128,6 +128,22 @@ class PlaceSignature:
     logodds: np.ndarray
     hist: Histograms
     anchor_dr_xy: tuple[float, float]
+
+
+@dataclass
+class _SignatureStack:
+    """Every signature's x and y histograms in one array each (row ``row[place_id]``): stacking them
+    anew for every scan cost as much as matching them."""
+
+    row: dict[int, int]
+    x: np.ndarray  # (places, 3, n)
+    y: np.ndarray
+
+    @classmethod
+    def of(cls, signatures: Mapping[int, PlaceSignature]) -> _SignatureStack:
+        pids = list(signatures)
+        return cls({pid: k for k, pid in enumerate(pids)}, np.stack([signatures[i].hist.x for i in pids]),
+                   np.stack([signatures[i].hist.y for i in pids]))
 
 
 @dataclass
@@ -254,6 +270,7 @@ class PlaceRecognizer:
         self.belief = _belief.Belief.empty()
         self.current = NO_PLACE
         self._signatures: dict[int, PlaceSignature] = {}
+        self._stack: _SignatureStack | None = None  # the signatures' histograms as arrays, for match
         self._first_visit: int = NO_PLACE  # the new place whose signature still grows
         self._scans: deque[tuple[PlacedScan, float]] = deque()
         self._last_xy: tuple[float, float] | None = None
@@ -318,6 +335,7 @@ class PlaceRecognizer:
         near = [s for s, _ in self._scans if np.hypot(s.x_m - xy[0], s.y_m - xy[1]) <= p.signature_radius_m]
         grid, hist = self._local_grid(near, xy)
         self._signatures[place_id] = PlaceSignature(grid, hist, xy)
+        self._stack = None
         if place_id in set(self.belief.ids.tolist()):
             self.belief = _belief.remove_place(self.belief, place_id)
         if self._last_xy is None:
@@ -374,6 +392,7 @@ class PlaceRecognizer:
             near = near or [min(placed, key=lambda s: np.hypot(s.x_m, s.y_m))]
             grid, hist = self._local_grid(near, (0.0, 0.0))
             self._signatures[pid] = PlaceSignature(grid, hist, (0.0, 0.0))
+            self._stack = None
         for lk in links:
             if lk.from_id in places and lk.to_id in places:
                 w = 1.0 / max(lk.steps, 1)
@@ -404,6 +423,7 @@ class PlaceRecognizer:
         if place_id in set(self.belief.ids.tolist()):
             self.belief = _belief.remove_place(self.belief, place_id)
         self._signatures.pop(place_id, None)
+        self._stack = None
         self._links = {k: v for k, v in self._links.items() if place_id not in k}
         if self.current == place_id:
             self.current, self._inside = NO_PLACE, None
@@ -442,6 +462,7 @@ class PlaceRecognizer:
             raise ValueError(f"signatures of places {missing} are missing")
         self.belief, self.current, self._first_visit = state.belief, state.current, state.first_visit
         self._signatures = {i: signatures[i] for i in state.signature_ids}
+        self._stack = None
         self._scans = deque((scan, path) for scan, path in state.scans)
         self._last_xy = None if state.last_xy is None else tuple(state.last_xy)
         self._inside, self._departure, self._pending = state.inside, state.departure, state.pending
@@ -498,8 +519,10 @@ class PlaceRecognizer:
         if not rows or not self._scans:
             return scores, offsets, variances
         _, obs = self._local_grid([s for s, _ in self._scans], xy)
-        sx = np.stack([self._signatures[int(self.belief.ids[r])].hist.x for r in rows])
-        sy = np.stack([self._signatures[int(self.belief.ids[r])].hist.y for r in rows])
+        if self._stack is None:
+            self._stack = _SignatureStack.of(self._signatures)
+        sel = [self._stack.row[int(self.belief.ids[r])] for r in rows]
+        sx, sy = self._stack.x[sel], self._stack.y[sel]
         max_shift = int(round(p.max_shift_m / p.cell_m))
         w = p.match_weights
         mx, my = match_axis(obs.x, sx, max_shift, w), match_axis(obs.y, sy, max_shift, w)
@@ -587,6 +610,9 @@ class PlaceRecognizer:
                                      logodds_occupied=p.logodds_occupied, logodds_empty=p.logodds_empty,
                                      echo_thickness_m=p.echo_thickness_m)
         sig.hist = histograms(classify(sig.logodds, p.logodds_threshold))
+        if self._stack is not None and place_id in self._stack.row:
+            k = self._stack.row[place_id]
+            self._stack.x[k], self._stack.y[k] = sig.hist.x, sig.hist.y
 
     def _at_place(self) -> int:
         b, p = self.belief, self.params

@@ -134,3 +134,24 @@ def test_remove_and_move_places():
     assert r.probs[0] == pytest.approx(0.5) and r.none_prob == pytest.approx(0.5)
     m = B.move_places(b, {1: (3.0, 4.0)})
     np.testing.assert_allclose(m.centres, [[0.0, 0.0], [3.0, 4.0]])
+
+
+def test_negligible_hypotheses_are_not_moved_as_sources():
+    """Moving only the hypotheses at least ``min_source_probability`` probable gives the belief of moving
+    them all, to within the mass left out, and places that held next to nothing keep what arrives."""
+    rng = np.random.default_rng(11)
+    n = 60
+    centres = rng.uniform(0.0, 30.0, size=(n, 2))
+    probs = np.full(n, 1e-16)
+    probs[[3, 17, 40]] = [0.6, 0.25, 0.1]
+    b = B.Belief(ids=np.arange(n), centres=centres, probs=probs, offsets=rng.normal(0.0, 0.1, (n, 2)),
+                 offset_vars=np.full((n, 2), 0.01), none_prob=1.0 - probs.sum(), none_xy=centres[3] + 0.4,
+                 none_var_m2=0.05)
+    motion = {**MOTION, "uniform_transition": 1e-4}
+    every = B.predict(b, np.array([0.7, -0.2]), relocalise_std_m=1.5, min_source_probability=0.0, **motion)
+    some = B.predict(b, np.array([0.7, -0.2]), relocalise_std_m=1.5, **motion)
+    np.testing.assert_allclose(some.probs, every.probs, atol=1e-12)
+    assert some.none_prob == pytest.approx(every.none_prob, abs=1e-12)
+    big = every.probs > 1e-6
+    np.testing.assert_allclose(some.offsets[big], every.offsets[big], atol=1e-9)
+    np.testing.assert_allclose(some.none_xy, every.none_xy, atol=1e-9)
