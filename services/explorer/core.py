@@ -43,6 +43,9 @@ class ExplorerParams:
     leg_timeout_base_s: float = 20.0  # a leg fails after this ...
     leg_timeout_per_m_s: float = 20.0  # ... plus this per metre of its length
     blocked_timeout_s: float = 5.0  # a leg fails after the controller is blocked this long
+    progress_timeout_s: float = 10.0  # a leg fails when the robot has come no nearer its end ...
+    progress_m: float = 0.1  # ... by this much in that long (dithering at a door frame, neither blocked
+    # nor stalled for long)
     max_speed_mps: float = 0.3  # forward speed limit
     max_turn_radps: float = 1.0  # turn rate limit
     heading_gain: float = 1.5  # turn rate per radian of heading error, 1/s
@@ -211,6 +214,8 @@ class ExplorerState(msgspec.Struct, frozen=True):
     leg_start_s: float
     blocked_since: float | None
     fix_after_s: float
+    progress_best_m: float = math.inf
+    progress_since_s: float = 0.0
 
 
 class Explorer:
@@ -236,7 +241,8 @@ class Explorer:
     - *Confirmation*: the leg towards a predicted place, from its nearest confirmed place, succeeds
       when the robot comes within ``arrive_tolerance_m`` of it, i.e. it could travel the 1 m; the
       place is confirmed at the robot's position (dead reckoning relative to the last place). The
-      leg fails when the controller stays blocked for ``blocked_timeout_s`` or the leg outlasts
+      leg fails when the controller stays blocked for ``blocked_timeout_s``, when the robot comes no
+      nearer the leg's end by ``progress_m`` in ``progress_timeout_s``, or when the leg outlasts
       ``leg_timeout_base_s + leg_timeout_per_m_s * length``: the predicted place is deleted.
       Arriving at a confirmed place within ``on_the_way_m`` of a leg's line towards a confirmed place
       (and nearer its end) counts as a traversal to it, and the leg goes on from there.
@@ -276,6 +282,8 @@ class Explorer:
         self.stalls = 0  # stalls met (robot pressed against an obstacle the sonar missed)
         self._leg_start_s = 0.0
         self._blocked_since: float | None = None
+        self._progress_best_m = math.inf  # nearest the robot has come to the leg's end ...
+        self._progress_since_s = 0.0  # ... first reached at this time
         self._fix_after_s = -math.inf  # localizations older than this are stale (before a confirmation)
         self._counts: tuple[int, int, int, int] | None = None  # places, links, confirmed, traversed or inferred
 
@@ -289,7 +297,8 @@ class Explorer:
             last_pose=self._last_pose, last_scan=self._last_scan, scan_heading=self._scan_heading,
             moving=list(self._moving), recover_until=self._recover_until, recover_cmd=self._recover_cmd,
             stalls=self.stalls, leg_start_s=self._leg_start_s, blocked_since=self._blocked_since,
-            fix_after_s=self._fix_after_s)
+            fix_after_s=self._fix_after_s, progress_best_m=self._progress_best_m,
+            progress_since_s=self._progress_since_s)
 
     def restore_snapshot(self, state: ExplorerState) -> None:
         """Take up the state of :meth:`snapshot` (of an explorer with the same parameters)."""
@@ -305,6 +314,7 @@ class Explorer:
         self._recover_until, self._recover_cmd = state.recover_until, tuple(state.recover_cmd)
         self.stalls, self._leg_start_s = state.stalls, state.leg_start_s
         self._blocked_since, self._fix_after_s = state.blocked_since, state.fix_after_s
+        self._progress_best_m, self._progress_since_s = state.progress_best_m, state.progress_since_s
 
     # --- inputs -------------------------------------------------------------------------------
 
@@ -463,7 +473,8 @@ class Explorer:
         assert self.leg is not None and self.robot_xy is not None
         frm, to = self.leg
         target = self.places[to]
-        near = math.hypot(target.x_m - self.robot_xy[0], target.y_m - self.robot_xy[1]) <= self.params.arrive_tolerance_m
+        dist = math.hypot(target.x_m - self.robot_xy[0], target.y_m - self.robot_xy[1])
+        near = dist <= self.params.arrive_tolerance_m
         if near and not target.confirmed:
             return self._confirm_here(to, frm, now_s)
         if near and to != self.current:
@@ -474,6 +485,10 @@ class Explorer:
             return self._fail_leg(now_s, "timeout")
         if self._blocked_since is not None and now_s - self._blocked_since >= p.blocked_timeout_s:
             return self._fail_leg(now_s, "blocked")
+        if dist <= self._progress_best_m - p.progress_m:
+            self._progress_best_m, self._progress_since_s = dist, now_s
+        elif now_s - self._progress_since_s > p.progress_timeout_s:
+            return self._fail_leg(now_s, "no progress")
         return []
 
     def _arrive(self, k: int, now_s: float) -> list[Event]:
@@ -683,6 +698,7 @@ class Explorer:
         self.target = target
         self._leg_start_s = now_s
         self._blocked_since = None
+        self._progress_best_m, self._progress_since_s = math.inf, now_s
 
     def _output(self, events: list[Event], now_s: float, pose: Pose2) -> ExplorerOutput:
         p = self.params

@@ -19,7 +19,7 @@ import pytest
 
 from tests.conftest import REPO, reproducible_graph
 
-SEED = 3
+SEED = 1  # a minute of it makes 17 places; seed 3 spends its first minute on the doors by its start
 MAX_SIM_TIME_S = 60
 # a launcher gives its services 10 s to stop before it kills them, then exits: wait longer than that
 LAUNCHER_STOP_S = 30.0

@@ -127,6 +127,28 @@ def test_predicted_place_deleted_when_blocked():
     assert "blocked" in _of(out.events, PlaceDeletedEvent)[0].reason
 
 
+def test_predicted_place_deleted_when_the_robot_comes_no_nearer():
+    """Dithering in front of a door frame (neither blocked nor stalled for long): the leg fails once the
+    robot has come no nearer its end by ``progress_m`` in ``progress_timeout_s``, long before its timeout."""
+    ex = Explorer(ExplorerParams(progress_timeout_s=10.0, progress_m=0.1))
+    ex.step(0.0, _pose(0.0, 0.0), scan_at(0.0, 0.0, 0.0, CORRIDOR)[0])
+    target = ex.leg[1]
+    sign = math.copysign(1.0, ex.places[target].x_m)
+    t, events = 0.0, []
+    while t < 9.9:  # 0.3 m nearer, then back and forth by 5 cm
+        t = round(t + 0.1, 1)
+        x = sign * (min(t, 3.0) * 0.1 + (0.05 if int(t * 10) % 2 else 0.0))
+        events += ex.step(t, _pose(x, 0.0)).events
+    assert _of(events, PlaceDeletedEvent) == []
+    while not _of(events, PlaceDeletedEvent) and t < 20.0:
+        t = round(t + 0.1, 1)
+        x = sign * (0.3 + (0.05 if int(t * 10) % 2 else 0.0))
+        events += ex.step(t, _pose(x, 0.0)).events
+    deleted = _of(events, PlaceDeletedEvent)
+    assert [e.place_id for e in deleted] == [target] and "no progress" in deleted[0].reason
+    assert t <= 13.1  # 10 s after it last came 0.1 m nearer (by 3 s); the leg timeout is 40 s
+
+
 def _chain_explorer(params=None) -> Explorer:
     """Confirmed places 0-1-2 on a line 1 m apart, traversed links, robot at 2; nothing predicted."""
     ex = Explorer(params)
