@@ -504,7 +504,8 @@ class Explorer:
                 events += self._traversed(prev if prev != NO_PLACE else frm, k)
                 if self.loop_queue and self.loop_queue[0] == (frm, to):
                     self.loop_queue.pop(0)
-            elif self.places[to].confirmed and k != frm and self._on_the_way(frm, to, k):
+            elif (self.places[to].confirmed and k != frm and _key(k, to) in self.links
+                  and self._on_the_way(frm, to, k)):
                 # an intermediate place: the traversal so far counts, the leg goes on from here
                 if prev != NO_PLACE and prev != k and prev in self.places:
                     events += self._traversed(prev, k)
@@ -528,7 +529,11 @@ class Explorer:
         return events
 
     def _on_the_way(self, frm: int, to: int, k: int) -> bool:
-        """Whether place ``k`` lies on the straight leg ``frm -> to``, nearer ``to`` than ``frm`` is."""
+        """Whether place ``k`` lies on the straight leg ``frm -> to``, nearer ``to`` than ``frm`` is.
+
+        The caller goes on from ``k`` only along a link ``k - to``: a leg with no link under it has
+        nothing to fail (Eq. 18), and one that cannot be travelled was taken again and again.
+        """
         a, b, c = self.places[frm], self.places[to], self.places[k]
         ex, ey = b.x_m - a.x_m, b.y_m - a.y_m
         length2 = ex * ex + ey * ey

@@ -209,6 +209,30 @@ def test_arriving_at_another_place_is_a_failed_traversal():
     assert ex.last_place == 3
 
 
+def test_a_place_on_the_way_continues_the_leg_only_along_a_link():
+    """Recognised at place 1 on the way from 0 to 2: the leg goes on as 1 -> 2 over their link; without
+    that link the leg ends there, a failed traversal of 0 -> 2 (a leg 1 -> 2 with no link under it could
+    fail for ever without changing the map)."""
+    for linked in (True, False):
+        ex = _chain_explorer()
+        ex.places[3] = Place(3, 3.0, 0.0, False, 2)
+        ex.links[(2, 3)] = Link(2, 3, PREDICTED, 0.5)
+        ex.links[(0, 2)] = Link(0, 2, INFERRED, 0.5)
+        del ex.links[(0, 1)]
+        if not linked:
+            del ex.links[(1, 2)]
+            ex.links[(0, 1)] = Link(0, 1, TRAVERSED, 0.5)
+        ex.current = ex.last_place = 0
+        ex.step(0.0, _pose(0.0, 0.0))
+        assert ex.leg == (0, 2)
+        out = ex.step(3.0, _pose(1.0, 0.0), fix=PlaceFix(1, 0.0, 0.0, 3.0))
+        if linked:
+            assert ex.leg == (1, 2) and LinkConfidenceEvent(0, 2, 0.25) not in out.events
+        else:
+            assert LinkConfidenceEvent(0, 2, 0.25) in out.events and ex.leg != (1, 2)
+        assert ex.last_place == 1
+
+
 def test_loop_closing_goes_directly_when_the_traversed_path_is_long():
     # a U of traversed places 0-1-2-3-4; the predicted place 5 at (0, 1) closes it next to 0
     ex = Explorer()
