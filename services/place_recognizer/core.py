@@ -57,6 +57,12 @@ class PlaceRecognizerParams:
     match_window_sd: float = 3.0  # a place is matched at shifts within this many standard deviations of
     # its predicted offset (0: at every shift)
 
+    def __post_init__(self) -> None:
+        if self.match_axes not in ("min", "mean"):
+            raise ValueError(f"match_axes must be 'min' or 'mean', not {self.match_axes!r}")
+        if len(self.match_weights) != 3 or min(self.match_weights) < 0 or max(self.match_weights) <= 0:
+            raise ValueError(f"match_weights must be three weights >= 0, not all 0: {self.match_weights!r}")
+
 
 @dataclass(frozen=True)
 class Localization:
@@ -529,7 +535,7 @@ class PlaceRecognizer:
         best = [self._plausible_best(m, rows, axis, max_shift) for axis, m in enumerate((mx, my))]
         if p.match_axes == "min":
             scores[rows] = np.minimum(best[0][1], best[1][1])
-        else:
+        else:  # "mean"
             scores[rows] = 0.5 * (best[0][1] + best[1][1])
         offsets[rows] = np.stack([best[0][0], best[1][0]], axis=1) * p.cell_m
         variances[rows] = np.stack([

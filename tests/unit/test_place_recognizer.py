@@ -252,3 +252,11 @@ def test_the_first_new_place_after_a_restore_is_linked_from_the_place_the_robot_
     out = rec.add_place(6, x5 + 0.95, y5, d.dr(30.5, 4.0))
     assert [(lk.from_id, lk.to_id) for lk in out.links] == [(5, 6)]
     assert out.links[0].d_m == pytest.approx(0.95, abs=0.02) and out.links[0].theta_rad == pytest.approx(0.0, abs=0.02)
+
+
+def test_bad_match_parameters_are_refused():
+    with pytest.raises(ValueError, match="match_axes"):
+        PlaceRecognizerParams(match_axes="max")
+    with pytest.raises(ValueError, match="match_weights"):
+        PlaceRecognizerParams(match_weights=(0.0, 0.0, 0.0))
+    assert PlaceRecognizerParams(match_axes="mean", match_weights=(1.0, 1.0, 1.0)).match_axes == "mean"
