@@ -506,7 +506,9 @@ class Explorer:
                     self.loop_queue.pop(0)
             elif (self.places[to].confirmed and k != frm and _key(k, to) in self.links
                   and self._on_the_way(frm, to, k)):
-                # an intermediate place: the traversal so far counts, the leg goes on from here
+                # an intermediate place: the traversal so far counts, the leg goes on from here, along
+                # the link k - to (a leg with no link under it has nothing to fail, Eq. 18, and was
+                # taken again and again)
                 if prev != NO_PLACE and prev != k and prev in self.places:
                     events += self._traversed(prev, k)
                 if self.loop_queue and self.loop_queue[0] == (frm, to):
@@ -529,11 +531,7 @@ class Explorer:
         return events
 
     def _on_the_way(self, frm: int, to: int, k: int) -> bool:
-        """Whether place ``k`` lies on the straight leg ``frm -> to``, nearer ``to`` than ``frm`` is.
-
-        The caller goes on from ``k`` only along a link ``k - to``: a leg with no link under it has
-        nothing to fail (Eq. 18), and one that cannot be travelled was taken again and again.
-        """
+        """Whether place ``k`` lies on the straight leg ``frm -> to``, nearer ``to`` than ``frm`` is."""
         a, b, c = self.places[frm], self.places[to], self.places[k]
         ex, ey = b.x_m - a.x_m, b.y_m - a.y_m
         length2 = ex * ex + ey * ey

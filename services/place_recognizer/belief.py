@@ -93,8 +93,6 @@ def predict(belief: Belief, displacement_xy: np.ndarray, *, transition_std_m: fl
     P = belief.ids.size
     ps_all = np.append(belief.probs, belief.none_prob)
     src = np.flatnonzero(ps_all >= min_source_probability)  # sources: rows of places, P for "none"
-    if src.size == 0:
-        src = np.array([int(np.argmax(ps_all))])
     ps = ps_all[src]
     pos = np.vstack([belief.centres + belief.offsets + d, belief.none_xy + d])[src]  # (S, 2)
     src_var = np.vstack([belief.offset_vars, np.full((1, 2), belief.none_var_m2)])[src]

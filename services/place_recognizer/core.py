@@ -520,14 +520,16 @@ class PlaceRecognizer:
         scores = np.full(P, np.nan)
         offsets = np.zeros((P, 2))
         variances = np.full((P, 2), np.inf)
-        rows = [r for r, pid in enumerate(self.belief.ids)
-                if int(pid) in self._signatures and self.belief.probs[r] >= p.match_min_prior]
-        if not rows or not self._scans:
+        if not self._signatures or not self._scans:
             return scores, offsets, variances
-        _, obs = self._local_grid([s for s, _ in self._scans], xy)
         if self._stack is None:
             self._stack = _SignatureStack.of(self._signatures)
-        sel = [self._stack.row[int(self.belief.ids[r])] for r in rows]
+        pairs = [(int(r), k) for r in np.flatnonzero(self.belief.probs >= p.match_min_prior)
+                 if (k := self._stack.row.get(int(self.belief.ids[r]))) is not None]
+        if not pairs:
+            return scores, offsets, variances
+        rows, sel = [r for r, _ in pairs], [k for _, k in pairs]
+        _, obs = self._local_grid([s for s, _ in self._scans], xy)
         sx, sy = self._stack.x[sel], self._stack.y[sel]
         max_shift = int(round(p.max_shift_m / p.cell_m))
         w = p.match_weights
