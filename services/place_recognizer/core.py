@@ -447,13 +447,13 @@ class PlaceRecognizer:
     # --- checkpoints --------------------------------------------------------------------------
 
     def snapshot(self) -> RecognizerState:
-        """The state without the signatures (see :meth:`signatures`); it shares the recognizer's arrays,
-        so it is to be encoded before the next call."""
+        """The state without the signatures (see :meth:`signatures`); it shares the recognizer's arrays
+        and link accumulators, so it is to be encoded before the next call."""
         return RecognizerState(
             belief=self.belief, current=self.current, first_visit=self._first_visit, scans=list(self._scans),
             last_xy=self._last_xy, inside=self._inside, departure=self._departure,
             pending=None if self._pending is None else _Pending(**vars(self._pending)),
-            links=[LinkAccumulator(**vars(a)) for a in self._links.values()],
+            links=list(self._links.values()),
             rejected_traversals=self.rejected_traversals, signature_ids=list(self._signatures),
             rejected_arrivals=self.rejected_arrivals)
 
