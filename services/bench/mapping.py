@@ -8,7 +8,9 @@ import argparse
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--places", type=int, nargs="+", default=[100, 1000],
                         help="map sizes at which the latency is measured")
-    parser.add_argument("--measure", type=int, default=60, help="places added (with their links) while measuring")
+    parser.add_argument("--measure", type=int, default=300,
+                        help="places added (with their links) while measuring: 300 time over 400 links, so that "
+                             "the p99 is not just the slowest one or two")
     parser.add_argument("--seed", type=int, default=0, help="seed of the generated office-like map")
 
 
