@@ -47,7 +47,8 @@ class PlaceRecognizerParams:
     match_sharpness: float = 25.0  # beta: likelihood exp(beta (M - 1)) of a match score M
     new_place_match: float = 0.7  # virtual match score of the "no known place" hypothesis
     confirmed_probability: float = 0.95  # belief in a place at the moment it is confirmed
-    settle_observations: int = 3  # observations at a revisited place before its link is measured
+    settle_observations: int = 5  # observations at a revisited place before its link is measured (or on
+    # leaving it): with 3, arrivals in open halls and empty rooms measured links with the offset still wrong
     link_fuse_gate_m: float = 1.0  # a later traversal further than this from the fused link is rejected
     max_hypotheses: int = 5  # hypotheses reported in the localization (most probable first)
     match_min_prior: float = 1e-12  # places less probable than this before the scan are not matched
@@ -553,7 +554,7 @@ class PlaceRecognizer:
         variance): a better score at a shift the robot cannot be at (another stretch of a corridor that
         looks the same) is not evidence for ``j``. Shifts within ``match_window_sd`` standard deviations
         (prior variance plus the rounding of whole cells) of the predicted offset count; the one
-        nearest the prediction always does.
+        nearest the prediction always does. Of equal best scores, the shift nearest the prediction wins.
         """
         p = self.params
         shifts = np.arange(-max_shift, max_shift + 1)
@@ -564,8 +565,9 @@ class PlaceRecognizer:
         dist = np.abs(shifts[None, :] - pred[:, None])
         allowed = (dist <= p.match_window_sd * sd[:, None]) | (dist == dist.min(axis=1, keepdims=True))
         masked = np.where(allowed, m.scores, -np.inf)
-        order = np.argsort(np.abs(shifts), kind="stable")  # ties to the smallest |shift|, as match_axis
-        idx = order[np.argmax(masked[:, order], axis=1)]
+        # ties to the shift nearest the prediction: along a stretch that looks the same (a corridor, an
+        # empty room) the scores are flat, and ties to the smallest |shift| pulled the offset to the centre
+        idx = np.argmin(np.where(masked >= masked.max(axis=1, keepdims=True), dist, np.inf), axis=1)
         return shifts[idx], masked[np.arange(len(rows)), idx]
 
     # --- internals ----------------------------------------------------------------------------
