@@ -260,3 +260,27 @@ def test_bad_match_parameters_are_refused():
     with pytest.raises(ValueError, match="match_weights"):
         PlaceRecognizerParams(match_weights=(0.0, 0.0, 0.0))
     assert PlaceRecognizerParams(match_axes="mean", match_weights=(1.0, 1.0, 1.0)).match_axes == "mean"
+
+
+def test_equal_scores_keep_the_predicted_offset():
+    """Along a stretch that looks the same the match is flat: of equal best scores within the window the
+    shift nearest the predicted offset wins (the smallest shift would pull the offset to the centre)."""
+    from services.place_recognizer import belief as _belief
+    from services.place_recognizer.histogram import AxisMatch
+
+    rec = PlaceRecognizer(PlaceRecognizerParams())
+    cell = rec.params.cell_m
+    rec.belief = _belief.Belief(
+        ids=np.array([7, 8]), centres=np.zeros((2, 2)), probs=np.array([0.5, 0.5]),
+        offsets=np.array([[3.2 * cell, -2.0 * cell], [-0.4 * cell, 0.0]]),
+        offset_vars=np.full((2, 2), (2.0 * cell) ** 2), none_prob=0.0, none_xy=np.zeros(2), none_var_m2=0.0)
+    shifts = np.arange(-10, 11)
+    flat = np.full((2, shifts.size), 0.8)
+    flat[1, shifts == 4] = 0.9  # place 8: one clearly better shift inside its window wins
+    m = AxisMatch(scores=flat, best_shift=np.zeros(2, dtype=int), best_score=flat.max(axis=1),
+                  mean_score=flat.mean(axis=1))
+    best_shift, best_score = rec._plausible_best(m, [0, 1], 0, 10)
+    assert best_shift.tolist() == [3, 4] and best_score.tolist() == [0.8, 0.9]
+    best_shift, _ = rec._plausible_best(AxisMatch(scores=np.full((2, shifts.size), 0.8), best_shift=np.zeros(2, dtype=int),
+                                                  best_score=np.full(2, 0.8), mean_score=np.full(2, 0.8)), [0, 1], 1, 10)
+    assert best_shift.tolist() == [-2, 0]
