@@ -86,7 +86,10 @@ class Node:
         self._counts = {"messages_in": 0, "messages_out": 0, "decode_errors": 0, "query_errors": 0,
                         "handler_errors": 0}
         self.detail: dict[str, float] = {}  # service-specific counters, shown in health
-        self._events: queue.SimpleQueue[tuple[Callable[..., None], tuple]] = queue.SimpleQueue()
+        # queue.Queue, not SimpleQueue: on Python 3.11 a signal that interrupts SimpleQueue.get(timeout)
+        # near the end of its timeout leaves it waiting with a negative timeout, i.e. for ever, so a
+        # SIGTERM could leave a service blocked in spin_once once its inputs had stopped
+        self._events: queue.Queue[tuple[Callable[..., None], tuple]] = queue.Queue()
         self._entities: list[Any] = []
         self._entities.append(session.declare_queryable(topics.health(robot, service), self._on_health_query))
         self._token: zenoh.LivelinessToken | None = None
