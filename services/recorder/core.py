@@ -35,6 +35,8 @@ class RecorderParams(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
     trail_spacing_m: float = 0.05  # a trail gets a new point once the pose moved this far from the last
     trail_period_s: float = 5.0  # each trail is logged at most once per this many simulated seconds
     live_period_s: float = 0.5  # poses, sonar rays and the belief: at most once per this, simulated s
+    map_period_s: float = 1.0  # places and links changed by other events than a map update: logged at most
+    # once per this many simulated s (the last change of each period, at its time); every map update is logged
     # (logging the three poses every 0.1 s and the trails every 1 s took over half the recorder's CPU)
     grid_every_versions: int = 10  # ask for the occupancy grid every this many map versions ...
     grid_period_s: float = 30.0  # ... or when this many simulated seconds passed since the last ask
@@ -55,7 +57,7 @@ class RecorderParams(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
             raise ValueError(f"trail_points must be at least 2, got {self.trail_points}")
         if self.grid_every_versions < 1:
             raise ValueError(f"grid_every_versions must be at least 1, got {self.grid_every_versions}")
-        for name in ("trail_spacing_m", "trail_period_s", "live_period_s", "grid_period_s",
+        for name in ("trail_spacing_m", "trail_period_s", "live_period_s", "map_period_s", "grid_period_s",
                      "grid_resolution_m"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be at least 0, got {getattr(self, name)}")

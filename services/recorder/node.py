@@ -155,6 +155,9 @@ class Recorder:
         self._grid_thread: threading.Thread | None = None
         self._grid_in_flight = False  # a query's thread runs, or its result waits in the event queue
         self._grid_pending: float | None = None  # stamp of a request made while another was in flight
+        self._stamp: float | None = None  # simulated time of the message being handled
+        self._map_logged: float | None = None  # when the places and links were last logged
+        self._map_dirty: float | None = None  # when they last changed without being logged (map_period_s)
         # Every key is present from the start: health copies this dict from another thread.
         node.detail.update({"handled": 0, "map_updates": 0, "map_version": -1, "grid_queries": 0, "grid_failures": 0,
                             "grids_logged": 0, "grid_skipped": 0, "places": 0, "predicted": 0,
@@ -182,8 +185,30 @@ class Recorder:
                 log.info("recorder: simulated time %.3f s is beyond %.3f s: stopping", stamp, self.max_sim_time_s)
                 self.stop.set()
             return False
+        if self._map_dirty is not None and stamp - self._map_logged >= self.params.map_period_s:
+            self.flush_map()
+        self._stamp = stamp
         self.rec.set_time(SIM_TIME, duration=stamp)
         return True
+
+    def flush_map(self) -> None:
+        """Log the places and links changed since they were last logged, at the time of the change."""
+        if self._map_dirty is None:
+            return
+        self.rec.set_time(SIM_TIME, duration=self._map_dirty)
+        self._log_map()
+        if self._stamp is not None:
+            self.rec.set_time(SIM_TIME, duration=self._stamp)
+
+    def _map_changed(self) -> None:
+        """The places or links changed by an event other than a map update: log them now, or at the
+        latest change of this ``map_period_s`` (logging the whole map on every inferred link and predicted
+        place cost more than the map updates themselves)."""
+        self._count()
+        if self._map_logged is None or self._stamp - self._map_logged >= self.params.map_period_s:
+            self._log_map()
+        else:
+            self._map_dirty = self._stamp
 
     def _event(self, text: str, level: rr.TextLogLevel = rr.TextLogLevel.INFO) -> None:
         self.rec.log(EVENTS, rr.TextLog(text, level=level))
@@ -203,49 +228,55 @@ class Recorder:
                                            radii=_ui(STYLE.traversed_width_pt / 2), draw_order=20.0))
         rec.log(INFERRED, rr.LineStrips2D(links.inferred, colors=[STYLE.inferred_color],
                                           radii=_ui(STYLE.inferred_width_pt / 2), draw_order=19.0))
-        d = self.node.detail
-        d["places"], d["predicted"] = len(places.confirmed_ids), len(places.predicted_ids)
+        self._map_logged = self._map_dirty if self._map_dirty is not None else self._stamp
+        self._map_dirty = None
+        self._count()
+
+    def _count(self) -> None:
+        st, d = self.state, self.node.detail
+        d["places"], d["predicted"] = len(st.initial), len(st.predicted)  # the relaxed ones are among the initial
         d["links_traversed"], d["links_inferred"] = len(st.traversed), len(st.inferred)
 
     # -- places and links ---------------------------------------------------------------------------
     def on_place_confirmed(self, msg: PlaceConfirmed) -> None:
         if self._at(msg.stamp):
             self.state.place_confirmed(msg)
-            self._log_map()
+            self._map_changed()
             self._event(f"place {msg.place_id} confirmed at ({msg.x_m:.2f}, {msg.y_m:.2f})")
 
     def on_place_predicted(self, msg: PlacePredicted) -> None:
         if self._at(msg.stamp):
             self.state.place_predicted(msg)
-            self._log_map()
+            self._map_changed()
 
     def on_place_deleted(self, msg: PlaceDeleted) -> None:
         if self._at(msg.stamp):
             self.state.place_deleted(msg)
-            self._log_map()
+            self._map_changed()
             self._event(f"place {msg.place_id} deleted: {msg.reason}", rr.TextLogLevel.WARN)
 
     def on_link_measured(self, msg: LinkMeasured) -> None:
         if self._at(msg.stamp):
             self.state.link_measured(msg)
-            self._log_map()
+            self._map_changed()
             self._event(f"link {msg.from_id}-{msg.to_id} measured: d={msg.d_m:.2f} m, "
                         f"theta={np.degrees(msg.theta_rad):.1f} deg, {msg.traversals} traversal(s)")
 
     def on_link_inferred(self, msg: LinkInferred) -> None:
         if self._at(msg.stamp):
             self.state.link_inferred(msg)
-            self._log_map()
+            self._map_changed()
 
     def on_link_deleted(self, msg: LinkDeleted) -> None:
         if self._at(msg.stamp):
             self.state.link_deleted(msg)
-            self._log_map()
+            self._map_changed()
             self._event(f"link {msg.from_id}-{msg.to_id} deleted: {msg.reason}", rr.TextLogLevel.WARN)
 
     def on_map_update(self, msg: MapUpdate) -> None:
         if not self._at(msg.stamp):
             return
+        self.flush_map()
         self.rec.set_time(MAP_VERSION, sequence=msg.version)
         self.state.map_update(msg)
         self._log_map()
@@ -454,6 +485,11 @@ def run(session: zenoh.Session, params: RecorderParams, *, rrd_path: Path, robot
             if drained:
                 log.info("recorder: %d queued messages recorded after the stop", drained)
     finally:
+        if recorder is not None:
+            try:
+                recorder.flush_map()
+            except Exception:
+                log.exception("recorder: the last change of the map could not be logged")
         close_recording(rec)
         if recorder is not None:
             recorder.close()

@@ -45,7 +45,7 @@ GRID = OccupancyGrid(resolution_m=0.5, origin_x_m=-1.0, origin_y_m=-2.0, width=4
                      cells=bytes([0, 0, 100, 255] * 3), version=1)
 # Record every message: no rate limits on simulated time, a grid on every map version.
 FAST = ["--param", "live_period_s=0", "--param", "trail_period_s=0", "--param", "trail_spacing_m=0.01",
-        "--param", "grid_every_versions=1"]
+        "--param", "grid_every_versions=1", "--param", "map_period_s=0"]
 
 
 def start_recorder(processes, hub, out: Path, *extra: str):
@@ -238,6 +238,50 @@ def test_records_the_map_and_closes_the_file_on_sigterm(hub, processes, tmp_path
     assert any("place 1 confirmed" in t[0] for t in texts) and any("exploration complete" in t[0] for t in texts)
     # a default blueprint travels with the recording
     assert rr.chunk.RrdReader(rrd).blueprints()
+
+
+def test_map_changes_between_updates_are_logged_once_per_period(hub, processes, tmp_path):
+    """With ``map_period_s`` the places and links are logged at the first change of a period and at its
+    last, at the last change's time; a map update logs them at once, and the stop logs what is left."""
+    session, _ = hub
+    proc = start_recorder(processes, hub, tmp_path, "--param", "map_period_s=10")
+    s = Script(session)
+    try:
+        s.put(topics.places_confirmed(ROBOT), PlaceConfirmed(stamp=0.5, seq=0, place_id=0, x_m=0.0, y_m=0.0))
+        s.sync()
+        s.put(topics.places_confirmed(ROBOT), PlaceConfirmed(stamp=0.6, seq=1, place_id=1, x_m=2.0, y_m=0.0))
+        s.sync()
+        s.put(topics.places_predicted(ROBOT), PlacePredicted(stamp=0.7, seq=0, place_id=2, x_m=2.0, y_m=2.0,
+                                                             parent_id=1))
+        s.put(topics.links_measured(ROBOT), LinkMeasured(stamp=0.8, seq=0, from_id=0, to_id=1, d_m=2.0,
+                                                         theta_rad=0.0, steps=20, mean_step_m=0.1))
+        s.sync()
+        s.put(topics.map_update(ROBOT), MapUpdate(
+            stamp=1.0, seq=0, version=1, changed=[PlacePosition(place_id=1, x_m=2.2, y_m=0.1)], full=False,
+            places=2, links=1, energy=1.0, iterations=3, method="sweep", noise=NOISE))
+        s.sync()
+        s.put(topics.places_predicted(ROBOT), PlacePredicted(stamp=1.5, seq=1, place_id=3, x_m=0.0, y_m=2.0,
+                                                             parent_id=0))
+        s.sync()
+        h = health(session)
+        assert h.detail["places"] == 2 and h.detail["predicted"] == 2 and h.detail["handler_errors"] == 0, h
+    finally:
+        s.close()
+    assert processes.stop(proc, signal.SIGTERM) == 0, _output(proc)
+    result = verify(tmp_path / "recording.rrd")
+    assert result.returncode == 0, result.stdout + result.stderr
+
+    rows = read_recording(tmp_path / "recording.rrd")
+    confirmed = [(t, v["Points2D:positions"]) for t, v in rows["/map/places/confirmed"] if t is not None]
+    # at the first change (0.5), at the last change before the update (0.8), at the update (1.0), and
+    # at the change after it (1.5), logged on the way out
+    assert [t for t, _ in confirmed] == pytest.approx([0.5, 0.8, 1.0, 1.5])
+    np.testing.assert_allclose(confirmed[1][1], [[0, 0], [2.0, 0.0]], atol=1e-6)
+    np.testing.assert_allclose(confirmed[2][1], [[0, 0], [2.2, 0.1]], atol=1e-6)
+    predicted = [(t, v["Points2D:labels"]) for t, v in rows["/map/places/predicted"] if t is not None]
+    assert predicted[1] == (pytest.approx(0.8), ["2"]) and predicted[-1] == (pytest.approx(1.5), ["2", "3"])
+    traversed = [t for t, v in rows["/map/links/traversed"] if t is not None and v.get("LineStrips2D:strips")]
+    assert traversed and traversed[0] == pytest.approx(0.8)
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
