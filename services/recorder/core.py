@@ -35,9 +35,9 @@ class RecorderParams(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
     trail_spacing_m: float = 0.05  # a trail gets a new point once the pose moved this far from the last
     trail_period_s: float = 5.0  # each trail is logged at most once per this many simulated seconds
     live_period_s: float = 0.5  # poses, sonar rays and the belief: at most once per this, simulated s
+    # (logging the three poses every 0.1 s and the trails every 1 s took over half the recorder's CPU)
     map_period_s: float = 1.0  # places and links changed by other events than a map update: logged at most
     # once per this many simulated s (the last change of each period, at its time); every map update is logged
-    # (logging the three poses every 0.1 s and the trails every 1 s took over half the recorder's CPU)
     grid_every_versions: int = 10  # ask for the occupancy grid every this many map versions ...
     grid_period_s: float = 30.0  # ... or when this many simulated seconds passed since the last ask
     grid_resolution_m: float = 0.0  # resolution asked of map/grid; 0 leaves it to the relaxer

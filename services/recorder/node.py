@@ -204,11 +204,11 @@ class Recorder:
         """The places or links changed by an event other than a map update: log them now, or at the
         latest change of this ``map_period_s`` (logging the whole map on every inferred link and predicted
         place cost more than the map updates themselves)."""
-        self._count()
         if self._map_logged is None or self._stamp - self._map_logged >= self.params.map_period_s:
             self._log_map()
         else:
             self._map_dirty = self._stamp
+            self._count()
 
     def _event(self, text: str, level: rr.TextLogLevel = rr.TextLogLevel.INFO) -> None:
         self.rec.log(EVENTS, rr.TextLog(text, level=level))
