@@ -253,6 +253,7 @@ def test_map_changes_between_updates_are_logged_once_per_period(hub, processes, 
         s.sync()
         s.put(topics.places_predicted(ROBOT), PlacePredicted(stamp=0.7, seq=0, place_id=2, x_m=2.0, y_m=2.0,
                                                              parent_id=1))
+        s.sync()  # order holds per key only: the link must come last
         s.put(topics.links_measured(ROBOT), LinkMeasured(stamp=0.8, seq=0, from_id=0, to_id=1, d_m=2.0,
                                                          theta_rad=0.0, steps=20, mean_step_m=0.1))
         s.sync()
