@@ -195,6 +195,7 @@ class RecorderState:
     inferred: dict[tuple[int, int], LinkInferred] = field(default_factory=dict)
     poses: dict[str, Pose2] = field(default_factory=dict)
     version: int = -1  # latest map version seen
+    map_logged: float | None = None  # when the places and links were last logged (see map_due)
     _trails: dict[str, _Trail] = field(default_factory=dict)
     _live_stamp: dict[str, float] = field(default_factory=dict)
     _grid_version: int | None = None  # map version of the last grid request
@@ -369,6 +370,11 @@ class RecorderState:
             hypothesis_xy=np.array([h[1] for h in hyps], dtype=np.float64).reshape(-1, 2),
             hypothesis_p=np.array([h[2] for h in hyps], dtype=np.float64),
         )
+
+    def map_due(self, stamp: float) -> bool:
+        """True when a change of the places and links at ``stamp`` may be logged at once: ``map_period_s``
+        after they were last logged (``map_logged``), or the first time."""
+        return _due(self.map_logged, stamp, self.params.map_period_s)
 
     # -- the occupancy grid -------------------------------------------------------------------------
     def grid_due(self, version: int, stamp: float) -> bool:

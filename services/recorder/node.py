@@ -156,7 +156,6 @@ class Recorder:
         self._grid_in_flight = False  # a query's thread runs, or its result waits in the event queue
         self._grid_pending: float | None = None  # stamp of a request made while another was in flight
         self._stamp: float | None = None  # simulated time of the message being handled
-        self._map_logged: float | None = None  # when the places and links were last logged
         self._map_dirty: float | None = None  # when they last changed without being logged (map_period_s)
         # Every key is present from the start: health copies this dict from another thread.
         node.detail.update({"handled": 0, "map_updates": 0, "map_version": -1, "grid_queries": 0, "grid_failures": 0,
@@ -185,7 +184,7 @@ class Recorder:
                 log.info("recorder: simulated time %.3f s is beyond %.3f s: stopping", stamp, self.max_sim_time_s)
                 self.stop.set()
             return False
-        if self._map_dirty is not None and stamp - self._map_logged >= self.params.map_period_s:
+        if self._map_dirty is not None and self.state.map_due(stamp):
             self.flush_map()
         self._stamp = stamp
         self.rec.set_time(SIM_TIME, duration=stamp)
@@ -204,7 +203,7 @@ class Recorder:
         """The places or links changed by an event other than a map update: log them now, or at the
         latest change of this ``map_period_s`` (logging the whole map on every inferred link and predicted
         place cost more than the map updates themselves)."""
-        if self._map_logged is None or self._stamp - self._map_logged >= self.params.map_period_s:
+        if self.state.map_due(self._stamp):
             self._log_map()
         else:
             self._map_dirty = self._stamp
@@ -228,7 +227,7 @@ class Recorder:
                                            radii=_ui(STYLE.traversed_width_pt / 2), draw_order=20.0))
         rec.log(INFERRED, rr.LineStrips2D(links.inferred, colors=[STYLE.inferred_color],
                                           radii=_ui(STYLE.inferred_width_pt / 2), draw_order=19.0))
-        self._map_logged = self._map_dirty if self._map_dirty is not None else self._stamp
+        st.map_logged = self._map_dirty if self._map_dirty is not None else self._stamp
         self._map_dirty = None
         self._count()
 
