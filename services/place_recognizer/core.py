@@ -11,8 +11,10 @@ import numpy as np
 
 from messages.types import DeadReckonedPose, SonarScan
 from services.place_recognizer import belief as _belief
+from services.place_recognizer.deviation import DeviationMap, DeviationParams, DeviationState
 from services.place_recognizer.grid import PlacedScan, build_grid, classify, integrate_scan
 from services.place_recognizer.histogram import Histograms, histograms, match_axis, match_error_variance
+from sim.geometry import wrap_angle
 
 NO_PLACE = -1  # place id of the "no known place" hypothesis and of "between places"
 
@@ -57,6 +59,7 @@ class PlaceRecognizerParams:
     arrival_gate_per_m: float = 0.05  # ... plus this per metre travelled since the last place is a jump
     match_window_sd: float = 3.0  # a place is matched at shifts within this many standard deviations of
     # its predicted offset (0: at every shift)
+    deviation: DeviationParams = field(default_factory=DeviationParams)  # the compass's deviation per place
 
     def __post_init__(self) -> None:
         if self.match_axes not in ("min", "mean"):
@@ -175,6 +178,9 @@ class LinkAccumulator:
     sum_wd: np.ndarray  # sum of D_k / T_k
     sum_wstep: float  # sum of mean_step_k / T_k
     traversals: int
+    applied_rad: float = 0.0  # the deviation correction of the last published estimate
+    corrected: bool = False  # the sums are corrected already (a restored map): later traversals are
+    # corrected as they come, and the fused link is not corrected again
 
     @classmethod
     def first(cls, from_id: int, to_id: int, disp: np.ndarray, *, steps: int, mean_step_m: float) -> LinkAccumulator:
@@ -197,12 +203,12 @@ class LinkAccumulator:
         self.traversals += 1
         return True
 
-    def estimate(self) -> LinkEstimate:
-        """The fused measurement."""
+    def estimate(self, rotate_rad: float = 0.0) -> LinkEstimate:
+        """The fused measurement, its angle less ``rotate_rad``."""
         d = self.sum_wd / self.sum_w
         return LinkEstimate(
             from_id=self.from_id, to_id=self.to_id, d_m=float(np.hypot(*d)),
-            theta_rad=float(np.arctan2(d[1], d[0])), steps=max(1, int(round(1.0 / self.sum_w))),
+            theta_rad=float(wrap_angle(np.arctan2(d[1], d[0]) - rotate_rad)), steps=max(1, int(round(1.0 / self.sum_w))),
             mean_step_m=float(self.sum_wstep / self.sum_w), traversals=self.traversals,
         )
 
@@ -222,6 +228,7 @@ class RecognizerState(msgspec.Struct, frozen=True):
     rejected_traversals: int
     signature_ids: list[int]  # the places whose signatures go with this state
     rejected_arrivals: int = 0
+    deviation: DeviationState | None = None
 
 
 class PlaceRecognizer:
@@ -288,6 +295,7 @@ class PlaceRecognizer:
         self.rejected_traversals = 0  # traversals refused by the fusing gate
         self.rejected_arrivals = 0  # recognitions refused as jumps (arrival gate)
         self._restored_at: tuple[int, tuple[float, float], tuple[float, float]] | None = None  # see restore
+        self.deviations = DeviationMap(self.params.deviation)
 
     # --- inputs -------------------------------------------------------------------------------
 
@@ -321,6 +329,9 @@ class PlaceRecognizer:
         if self._first_visit == self.current and self.current != NO_PLACE:
             self._grow_signature(self.current, placed)
         links = self._track(dr)
+        if p.deviation.enabled and self.deviations.observe(self.current, dr.compass.heading_rad,
+                                                            dr.raw.heading_rad, dr.path_length_m):
+            links = links + self._recorrected({(lk.from_id, lk.to_id) for lk in links})
         valid = scores[~np.isnan(scores)]
         diag = {"best_score": float(valid.max()) if valid.size else float("nan"),
                 "none_prob": self.belief.none_prob, "places": float(self.belief.ids.size),
@@ -405,7 +416,7 @@ class PlaceRecognizer:
                 w = 1.0 / max(lk.steps, 1)
                 disp = lk.d_m * np.array([np.cos(lk.theta_rad), np.sin(lk.theta_rad)])
                 self._links[frozenset((lk.from_id, lk.to_id))] = LinkAccumulator(
-                    lk.from_id, lk.to_id, w, w * disp, w * lk.mean_step_m, lk.traversals)
+                    lk.from_id, lk.to_id, w, w * disp, w * lk.mean_step_m, lk.traversals, corrected=True)
         n = len(ids)
         probs = np.zeros(n)
         offsets = np.zeros((n, 2))
@@ -432,6 +443,7 @@ class PlaceRecognizer:
         self._signatures.pop(place_id, None)
         self._stack = None
         self._links = {k: v for k, v in self._links.items() if place_id not in k}
+        self.deviations.remove_place(place_id)
         if self.current == place_id:
             self.current, self._inside = NO_PLACE, None
         if self._departure is not None and self._departure.place_id == place_id:
@@ -456,7 +468,7 @@ class PlaceRecognizer:
             pending=None if self._pending is None else _Pending(**vars(self._pending)),
             links=list(self._links.values()),
             rejected_traversals=self.rejected_traversals, signature_ids=list(self._signatures),
-            rejected_arrivals=self.rejected_arrivals)
+            rejected_arrivals=self.rejected_arrivals, deviation=self.deviations.snapshot())
 
     def signatures(self) -> dict[int, PlaceSignature]:
         """Each place's signature; a signature's ``logodds`` is a new array whenever it has grown."""
@@ -476,6 +488,9 @@ class PlaceRecognizer:
         self._links = {frozenset((a.from_id, a.to_id)): a for a in state.links}
         self.rejected_traversals = state.rejected_traversals
         self.rejected_arrivals = state.rejected_arrivals
+        self.deviations = DeviationMap(self.params.deviation)
+        if state.deviation is not None:
+            self.deviations.restore_snapshot(state.deviation)
 
     # --- queries ------------------------------------------------------------------------------
 
@@ -719,9 +734,38 @@ class PlaceRecognizer:
         key = frozenset((a, b))
         acc = self._links.get(key)
         if acc is None:
-            self._links[key] = LinkAccumulator.first(a, b, disp, steps=steps, mean_step_m=mean_step)
-            return self._links[key].estimate()
+            acc = self._links[key] = LinkAccumulator.first(a, b, disp, steps=steps, mean_step_m=mean_step)
+            return self._published(acc)
+        if acc.corrected:  # a restored link: this traversal is corrected alone
+            disp = _rotated(disp, -self._correction(a, b))
         if not acc.add(a, b, disp, steps=steps, mean_step_m=mean_step, gate_m=self.params.link_fuse_gate_m):
             self.rejected_traversals += 1
             return None
-        return acc.estimate()
+        return self._published(acc)
+
+    def _correction(self, a: int, b: int) -> float:
+        """The angle by which the compass turned a link between ``a`` and ``b``: the mean of the places'
+        deviations (0 while ``deviation.enabled`` is off)."""
+        if not self.params.deviation.enabled:
+            return 0.0
+        return 0.5 * (self.deviations.deviation(a) + self.deviations.deviation(b))
+
+    def _published(self, acc: LinkAccumulator) -> LinkEstimate:
+        """The estimate to publish, corrected for the deviation (a restored link is corrected already)."""
+        if acc.corrected:
+            return acc.estimate()
+        acc.applied_rad = self._correction(acc.from_id, acc.to_id)
+        return acc.estimate(acc.applied_rad)
+
+    def _recorrected(self, skip: set[tuple[int, int]]) -> tuple[LinkEstimate, ...]:
+        """The links whose correction moved by ``deviation.republish_rad`` or more since they were
+        published, published again (the same traversals, the angle corrected anew)."""
+        tol = self.params.deviation.republish_rad
+        return tuple(self._published(acc) for acc in self._links.values()
+                     if not acc.corrected and (acc.from_id, acc.to_id) not in skip
+                     and abs(self._correction(acc.from_id, acc.to_id) - acc.applied_rad) >= tol)
+
+
+def _rotated(v: np.ndarray, angle_rad: float) -> np.ndarray:
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([c * v[0] - s * v[1], s * v[0] + c * v[1]])

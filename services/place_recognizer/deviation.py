@@ -1,0 +1,223 @@
+"""The compass's local deviation at every place, learned on-line from the wheels' heading."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import msgspec
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from sim.geometry import wrap_angle
+
+_DEG = math.pi / 180.0
+
+
+@dataclass(frozen=True)
+class DeviationParams:
+    """Parameters of :class:`DeviationMap`."""
+
+    enabled: bool = False  # learn the deviations and correct the links' angles with them (off: see docs/places.md)
+    prior_std_rad: float = 4.0 * _DEG  # a place's deviation before any visit: zero, with this spread
+    compass_std_rad: float = 2.0 * _DEG  # white noise of one compass reading
+    wheel_std_rad_per_sqrt_m: float = 2.0 * _DEG  # heading error the calibrated wheels add per sqrt(metre)
+    wheel_std_rad_per_sqrt_rad: float = 0.03  # ... and per sqrt(radian) turned
+    min_gap_m: float = 0.2  # path counted between two visits at least (the wheels' error within a place)
+    max_gap_m: float = 10.0  # two visits further apart along the path than this are not compared
+    scale_prior_std: float = 0.05  # the wheels' rotation scale is 1 within about this before calibration
+    drift_prior_std_rad_per_m: float = 2.0 * _DEG  # their heading drift is 0 within about this
+    calibration_gate_rad: float = 0.15  # a scan-to-scan sample further than this from the calibration is
+    # left out of it (a slip, a disturbance's edge), once it rests on 50 samples
+    max_turn_rad: float = 1.5  # a scan-to-scan turn larger than this is left out (wrapping is ambiguous)
+    gate_sd: float = 4.0  # a pair of visits further than this many standard deviations from the
+    # estimate (its own spread plus twice the prior's) is left out
+    republish_rad: float = 1.0 * _DEG  # a link is published again when its correction moved this much
+
+
+class DeviationState(msgspec.Struct, frozen=True):
+    """Everything a :class:`DeviationMap` knows, for checkpoints."""
+
+    normal: tuple[float, float, float, float, float]  # sums of the calibration's least squares
+    samples: int
+    last: tuple[float, float, float] | None  # compass heading, wheel heading, path of the last scan
+    wheel_rad: float  # calibrated wheel heading, unwrapped
+    turned_rad: float  # sum of the wheels' |turns|
+    visit: tuple[int, float, float, int, float, float, float, float] | None  # place, ref, sum, count,
+    # first and last path, first and last turned
+    previous: tuple[int, float, int, float, float] | None  # the last closed visit: place, mean, count,
+    # last path, last turned
+    rejected: int
+    edges: list[tuple[int, int, float, float]]  # a < b, sum of weights, sum of weight x (d_b - d_a)
+    estimate: dict[int, float]
+
+
+class DeviationMap:
+    """Per-place compass deviation: where the compass reads ``d`` more than the true heading.
+
+    Notes
+    -----
+    A disturbed compass bends every link measured through the disturbance the same way; fusing
+    traversals does not average it out. The wheels do not see it. Between two consecutive visits of
+    places ``a`` and ``b`` the difference ``g = compass - wheels`` (averaged over each visit's scans)
+    changes by ``d_b - d_a`` plus the wheels' heading error over the path in between. The wheels are
+    calibrated on-line against the compass over scan-to-scan increments, ``dc = a dw + b dL`` by
+    least squares (the wheels' increments are the precise regressor, the compass's noise is in
+    ``dc``; a deviation hardly changes over 0.2 m), with priors ``a = 1``, ``b = 0`` that hold it while
+    the robot has not turned; the wheel heading is integrated as ``a dw + b dL``. The deviations are
+    the least-squares solution of every pair of consecutive visits (variance ``compass_std^2 (1/n_a +
+    1/n_b)`` plus the wheels' error over the path and the turns in between) and a prior ``d ~ N(0,
+    prior_std^2)`` per place (most of a building is undisturbed), one sparse solve per closed visit.
+    A pair further than ``gate_sd`` from the current estimate is left out (counted in ``rejected``).
+    A link's angle is corrected by the mean of its two places' deviations, the mean along the path
+    for a deviation that is smooth over a metre.
+    """
+
+    def __init__(self, params: DeviationParams | None = None) -> None:
+        self.params = params or DeviationParams()
+        self._normal = np.zeros(5)  # sums of dw^2, dw dL, dL^2, dw dc, dL dc
+        self._samples = 0
+        self._last: tuple[float, float, float] | None = None
+        self._wheel = 0.0
+        self._turned = 0.0
+        self._visit: list | None = None  # [place, ref, sum, count, first path, last path, first/last turned]
+        self._previous: tuple[int, float, int, float, float] | None = None
+        self.rejected = 0  # pairs of visits left out by the gate
+        self._edges: dict[tuple[int, int], list[float]] = {}
+        self.estimate: dict[int, float] = {}  # place id -> deviation (rad); absent: 0
+
+    # --- inputs -------------------------------------------------------------------------------
+
+    def observe(self, place_id: int, compass_rad: float, wheel_rad: float, path_m: float) -> bool:
+        """One scan: the place the robot is at (negative: between places), the compass and the raw
+        wheel headings and the path travelled. Returns whether the estimate changed."""
+        self._calibrate(compass_rad, wheel_rad, path_m)
+        g = float(wrap_angle(compass_rad - self._wheel))
+        v = self._visit
+        if v is not None and v[0] == place_id:
+            v[2] += float(wrap_angle(g - v[1]))
+            v[3] += 1
+            v[5], v[7] = path_m, self._turned
+            return False
+        changed = self._close_visit()
+        if place_id >= 0:
+            self._visit = [place_id, g, 0.0, 1, path_m, path_m, self._turned, self._turned]
+        return changed
+
+    def remove_place(self, place_id: int) -> None:
+        """Forget a deleted place."""
+        self._edges = {k: e for k, e in self._edges.items() if place_id not in k}
+        self.estimate.pop(place_id, None)
+        if self._visit is not None and self._visit[0] == place_id:
+            self._visit = None
+        if self._previous is not None and self._previous[0] == place_id:
+            self._previous = None
+
+    def deviation(self, place_id: int) -> float:
+        """The estimated deviation at a place, 0 where nothing is known."""
+        return self.estimate.get(place_id, 0.0)
+
+    def calibration(self) -> tuple[float, float]:
+        """``(a, b)``: a wheel increment ``dw`` over a path ``dL`` turned the robot by ``a dw + b dL``."""
+        p = self.params
+        la = 2.0 * (p.compass_std_rad / p.scale_prior_std) ** 2  # a compass difference holds two readings
+        lb = 2.0 * (p.compass_std_rad / p.drift_prior_std_rad_per_m) ** 2
+        s = self._normal
+        m00, m01, m11 = s[0] + la, s[1], s[2] + lb
+        r0, r1 = s[3] + la, s[4]
+        det = m00 * m11 - m01 * m01
+        return float((r0 * m11 - r1 * m01) / det), float((r1 * m00 - r0 * m01) / det)
+
+    @property
+    def edges(self) -> int:
+        """Pairs of places compared so far."""
+        return len(self._edges)
+
+    # --- checkpoints --------------------------------------------------------------------------
+
+    def snapshot(self) -> DeviationState:
+        v = self._visit
+        return DeviationState(
+            normal=tuple(float(x) for x in self._normal), samples=self._samples, last=self._last,
+            wheel_rad=self._wheel, turned_rad=self._turned,
+            visit=None if v is None else (int(v[0]), v[1], v[2], int(v[3]), v[4], v[5], v[6], v[7]),
+            previous=self._previous, rejected=self.rejected,
+            edges=[(a, b, e[0], e[1]) for (a, b), e in self._edges.items()], estimate=dict(self.estimate))
+
+    def restore_snapshot(self, state: DeviationState) -> None:
+        self._normal = np.array(state.normal, dtype=float)
+        self._samples, self._wheel, self._turned = state.samples, state.wheel_rad, state.turned_rad
+        self.rejected = state.rejected
+        self._last = None if state.last is None else tuple(state.last)
+        self._visit = None if state.visit is None else list(state.visit)
+        self._previous = None if state.previous is None else tuple(state.previous)
+        self._edges = {(a, b): [w, wm] for a, b, w, wm in state.edges}
+        self.estimate = {int(k): float(v) for k, v in state.estimate.items()}
+
+    # --- internals ----------------------------------------------------------------------------
+
+    def _calibrate(self, compass_rad: float, wheel_rad: float, path_m: float) -> None:
+        p = self.params
+        last, self._last = self._last, (compass_rad, wheel_rad, path_m)
+        if last is None:
+            self._wheel = compass_rad  # the first reading aligns the wheels with the compass
+            return
+        dc = float(wrap_angle(compass_rad - last[0]))
+        dw = float(wrap_angle(wheel_rad - last[1]))
+        dl = path_m - last[2]
+        a, b = self.calibration()
+        self._wheel += a * dw + b * dl
+        self._turned += abs(dw)
+        if abs(dw) > p.max_turn_rad or abs(dc) > p.max_turn_rad:
+            return
+        if self._samples >= 50 and abs(dc - a * dw - b * dl) > p.calibration_gate_rad:
+            return
+        self._normal += (dw * dw, dw * dl, dl * dl, dw * dc, dl * dc)
+        self._samples += 1
+
+    def _close_visit(self) -> bool:
+        v, self._visit = self._visit, None
+        if v is None:
+            return False
+        place, mean, count = v[0], float(wrap_angle(v[1] + v[2] / v[3])), v[3]
+        prev, self._previous = self._previous, (place, mean, count, v[5], v[7])
+        p = self.params
+        if prev is None or prev[0] == place or v[4] - prev[3] > p.max_gap_m:
+            return False
+        gap = max(v[4] - prev[3], p.min_gap_m)
+        var = (p.compass_std_rad**2 * (1.0 / prev[2] + 1.0 / count) + p.wheel_std_rad_per_sqrt_m**2 * gap
+               + p.wheel_std_rad_per_sqrt_rad**2 * max(v[6] - prev[4], 0.0))
+        a, b, diff = prev[0], place, float(wrap_angle(mean - prev[1]))
+        if a > b:
+            a, b, diff = b, a, -diff
+        if abs(diff - self.deviation(b) + self.deviation(a)) > p.gate_sd * math.sqrt(var + 2.0 * p.prior_std_rad**2):
+            self.rejected += 1
+            return False
+        e = self._edges.setdefault((a, b), [0.0, 0.0])
+        e[0] += 1.0 / var
+        e[1] += diff / var
+        self._solve()
+        return True
+
+    def _solve(self) -> None:
+        """The deviations of every compared place: ``(P + L^T W L) d = L^T W m`` (sparse)."""
+        ids = sorted({i for k in self._edges for i in k})
+        if not ids:
+            self.estimate = {}
+            return
+        row = {pid: n for n, pid in enumerate(ids)}
+        pairs = np.array([(row[a], row[b]) for a, b in self._edges], dtype=int).reshape(-1, 2)
+        e = np.array(list(self._edges.values()), dtype=float).reshape(-1, 2)
+        w, wm = e[:, 0], e[:, 1]
+        n = len(ids)
+        diag = np.full(n, 1.0 / self.params.prior_std_rad**2)
+        np.add.at(diag, pairs[:, 0], w)
+        np.add.at(diag, pairs[:, 1], w)
+        off = sp.coo_matrix((np.concatenate([-w, -w]), (np.concatenate([pairs[:, 0], pairs[:, 1]]),
+                                                         np.concatenate([pairs[:, 1], pairs[:, 0]]))), shape=(n, n))
+        rhs = np.zeros(n)
+        np.add.at(rhs, pairs[:, 1], wm)
+        np.add.at(rhs, pairs[:, 0], -wm)
+        d = spla.spsolve((sp.diags(diag) + off).tocsc(), rhs)
+        self.estimate = {pid: float(x) for pid, x in zip(ids, np.atleast_1d(d), strict=True)}
