@@ -47,6 +47,10 @@ class ExplorerParams:
     progress_timeout_s: float = 10.0  # a leg fails when the robot has come no nearer its end ...
     progress_m: float = 0.1  # ... by this much in that long (dithering at a door frame, neither blocked
     # nor stalled for long)
+    max_interruptions: int = 3  # legs towards a predicted place that end at another place: deleted after this
+    # many (the recognizer keeps putting the robot at a near-duplicate of the leg's start)
+    back_to_start_m: float = 0.4  # after a failed leg, a robot this far from the leg's start goes back to
+    # within half of it before the next leg (wedged beside a place, heading straight on for the next fails)
     max_speed_mps: float = 0.3  # forward speed limit
     max_turn_radps: float = 1.0  # turn rate limit
     heading_gain: float = 1.5  # turn rate per radian of heading error, 1/s
@@ -215,6 +219,8 @@ class ExplorerState(msgspec.Struct, frozen=True):
     fix_after_s: float
     progress_best_m: float = math.inf
     progress_since_s: float = 0.0
+    via: int = -1  # after a failed leg: the place the robot goes back to first (-1: none)
+    interrupted: dict[int, int] = msgspec.field(default_factory=dict)  # predicted place -> legs ended elsewhere
 
 
 class Explorer:
@@ -257,6 +263,12 @@ class Explorer:
       different place than the leg's end) sets ``c = (1 - lambda) c`` (Eq. 18); below
       ``confidence_min`` the link is deleted, then every predicted place no path from the robot's last
       place reaches is deleted, and every confirmed one left without a traversed or inferred link.
+      The last link of the place a leg starts from is kept, however low: legs that fail from every
+      link of the robot's place mean the robot is stuck or lost, and deleting them would prune the
+      whole map beyond it and end the exploration. After a failed leg, a robot more than
+      ``back_to_start_m`` from the leg's start goes back to it before heading for the next leg's end.
+      A predicted place is deleted once ``max_interruptions`` legs towards it have ended at another
+      place (the recognizer putting the robot at a near-duplicate of the leg's start, for ever).
     - *End*: exploration is complete when no predicted place and no loop-closing leg is left.
     """
 
@@ -283,6 +295,8 @@ class Explorer:
         self._blocked_since: float | None = None
         self._progress_best_m = math.inf  # nearest the robot has come to the leg's end ...
         self._progress_since_s = 0.0  # ... first reached at this time
+        self._via = NO_PLACE  # after a failed leg: the place to go back to before the leg's end
+        self._interrupted: dict[int, int] = {}  # predicted place -> legs towards it that ended at another place
         self._fix_after_s = -math.inf  # localizations older than this are stale (before a confirmation)
         self._counts: tuple[int, int, int, int] | None = None  # places, links, confirmed, traversed or inferred
 
@@ -297,7 +311,7 @@ class Explorer:
             moving=list(self._moving), recover_until=self._recover_until, recover_cmd=self._recover_cmd,
             stalls=self.stalls, leg_start_s=self._leg_start_s, blocked_since=self._blocked_since,
             fix_after_s=self._fix_after_s, progress_best_m=self._progress_best_m,
-            progress_since_s=self._progress_since_s)
+            progress_since_s=self._progress_since_s, via=self._via, interrupted=dict(self._interrupted))
 
     def restore_snapshot(self, state: ExplorerState) -> None:
         """Take up the state of :meth:`snapshot` (of an explorer with the same parameters)."""
@@ -314,6 +328,8 @@ class Explorer:
         self.stalls, self._leg_start_s = state.stalls, state.leg_start_s
         self._blocked_since, self._fix_after_s = state.blocked_since, state.fix_after_s
         self._progress_best_m, self._progress_since_s = state.progress_best_m, state.progress_since_s
+        self._via = state.via
+        self._interrupted = dict(state.interrupted)
 
     # --- inputs -------------------------------------------------------------------------------
 
@@ -444,6 +460,12 @@ class Explorer:
         pa, pb = self.places[a], self.places[b]
         return math.hypot(pb.x_m - pa.x_m, pb.y_m - pa.y_m)
 
+    def distance_to(self, pid: int) -> float:
+        """The robot's distance from place ``pid``."""
+        assert self.robot_xy is not None
+        q = self.places[pid]
+        return math.hypot(q.x_m - self.robot_xy[0], q.y_m - self.robot_xy[1])
+
     def shortest_path(self, a: int, b: int) -> list[int]:
         """Planned path from ``a`` to ``b`` over all links; empty when none."""
         _, prev = dijkstra(self.graph(), a)
@@ -473,7 +495,9 @@ class Explorer:
         frm, to = self.leg
         target = self.places[to]
         dist = math.hypot(target.x_m - self.robot_xy[0], target.y_m - self.robot_xy[1])
-        near = dist <= self.params.arrive_tolerance_m
+        if self._via != NO_PLACE:  # progress counted towards the place gone back to first
+            dist = self.distance_to(self._via)
+        near = dist <= self.params.arrive_tolerance_m and self._via == NO_PLACE
         if near and not target.confirmed:
             return self._confirm_here(to, frm, now_s)
         if near and to != self.current:
@@ -493,6 +517,8 @@ class Explorer:
     def _arrive(self, k: int, now_s: float) -> list[Event]:
         """The robot is at confirmed place ``k`` (recognised, or reached the leg's end)."""
         events: list[Event] = []
+        if k != self._via:
+            self._via = NO_PLACE
         prev = self.last_place
         if self.leg is not None:
             frm, to = self.leg
@@ -520,6 +546,11 @@ class Explorer:
                     events += self._failed(frm, to, "reached another place")
                 elif not self.places[to].confirmed and self.distance(to, k) < self.params.merge_distance_m:
                     events += self._delete_place(to, f"coincides with place {k}")
+                elif not self.places[to].confirmed and k != frm:
+                    n = self._interrupted[to] = self._interrupted.get(to, 0) + 1
+                    if n >= self.params.max_interruptions:
+                        events += self._delete_place(to, f"{n} legs towards it ended at other places, "
+                                                         f"the last at place {k}")
                 if prev != NO_PLACE and prev != k and prev in self.places:
                     events += self._traversed(prev, k)
             self.leg = None
@@ -554,14 +585,19 @@ class Explorer:
             link.confidence = confidence_after_traversal(link.confidence, p.confidence_rate)
         return [LinkConfidenceEvent(a, b, link.confidence)]
 
-    def _failed(self, a: int, b: int, reason: str) -> list[Event]:
-        """A failed traversal of ``a -> b`` (Eq. 18); deletes the link below the threshold."""
+    def _failed(self, a: int, b: int, reason: str, *, robot_at: int = NO_PLACE) -> list[Event]:
+        """A failed traversal of ``a -> b`` (Eq. 18); deletes the link below the threshold, unless it is
+        the last link of ``robot_at``, the place the robot is still at: the rest of the map would be
+        pruned as cut off from the robot, when the failures say that the robot is stuck or lost there."""
         p = self.params
         link = self.links.get(_key(a, b))
         if link is None:
             return []
         link.confidence = confidence_after_failure(link.confidence, p.confidence_rate)
         events: list[Event] = [LinkConfidenceEvent(a, b, link.confidence)]
+        if robot_at != NO_PLACE and not any(robot_at in key and key != _key(a, b) and other.kind != PREDICTED
+                                            for key, other in self.links.items()):
+            return events
         if link.confidence < p.confidence_min:
             del self.links[_key(a, b)]
             events.append(LinkDeletedEvent(a, b, f"confidence {link.confidence:.3f} below "
@@ -576,9 +612,11 @@ class Explorer:
         self._blocked_since = None
         if self.loop_queue and self.loop_queue[0] == (frm, to):
             self.loop_queue.pop(0)
+        if frm in self.places and self.distance_to(frm) > self.params.back_to_start_m:
+            self._via = frm
         if not self.places[to].confirmed:
             return self._delete_place(to, f"cannot travel {self.params.place_spacing_m} m towards it ({reason})")
-        return self._failed(frm, to, reason) + self._prune()
+        return self._failed(frm, to, reason, robot_at=frm) + self._prune()
 
     def _delete_place(self, pid: int, reason: str) -> list[Event]:
         events: list[Event] = []
@@ -588,6 +626,9 @@ class Explorer:
                 events.append(LinkDeletedEvent(link.a, link.b, f"place {pid} deleted"))
         del self.places[pid]
         self.loop_queue = [q for q in self.loop_queue if pid not in q]
+        if self._via == pid:
+            self._via = NO_PLACE
+        self._interrupted.pop(pid, None)
         if self.leg is not None and pid in self.leg:
             self.leg = None
         events.append(PlaceDeletedEvent(pid, reason))
@@ -617,6 +658,8 @@ class Explorer:
             place = self.places[pid] = Place(pid, x, y, True, frm)
         place.x_m, place.y_m, place.confirmed = x, y, True
         events: list[Event] = [PlaceConfirmedEvent(pid, x, y)]
+        self._via = NO_PLACE
+        self._interrupted.pop(pid, None)
         if frm != NO_PLACE:
             events += self._traversed(frm, pid)
         for q in [q for q in self.places.values() if not q.confirmed]:
@@ -704,8 +747,13 @@ class Explorer:
 
     def _output(self, events: list[Event], now_s: float, pose: Pose2) -> ExplorerOutput:
         p = self.params
+        if self._via != NO_PLACE and (self._via not in self.places or self.robot_xy is None
+                                      or self.distance_to(self._via) <= 0.5 * p.back_to_start_m):
+            self._via = NO_PLACE
+            if self.leg is not None:  # the leg's end from here: its progress counted afresh
+                self._progress_best_m, self._progress_since_s = math.inf, now_s
         if self.leg is not None and self.robot_xy is not None:
-            goal = self.places[self.leg[1]]
+            goal = self.places[self.leg[1] if self._via == NO_PLACE else self._via]
             scan = self._scan_in_heading(pose.heading_rad)
             cmd = velocity_command(
                 self.robot_xy[0], self.robot_xy[1], pose.heading_rad, goal.x_m, goal.y_m, scan,

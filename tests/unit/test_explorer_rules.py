@@ -195,6 +195,68 @@ def test_traversal_raises_and_failure_lowers_confidence_then_deletes_link_and_un
     assert out.status.complete
 
 
+def test_the_last_link_of_the_robots_place_is_kept_however_often_its_legs_fail():
+    """A robot stuck at place 2, whose one link fails again and again: without the link no path would
+    reach the rest of the map, and every predicted place would be pruned as out of reach."""
+    ex = _chain_explorer(ExplorerParams(leg_timeout_base_s=10.0, leg_timeout_per_m_s=0.0))
+    ex.places[3] = Place(3, -1.0, 0.0, False, 0)
+    ex.links[(0, 3)] = Link(0, 3, PREDICTED, 0.5)
+    ex.step(0.0, _pose(2.0, 0.0))
+    assert ex.leg == (2, 1)
+    confidences = []
+    for k in range(1, 5):  # the robot never leaves place 2
+        out = ex.step(10.5 * k, _pose(2.0, 0.0))
+        confidences += [e.confidence for e in _of(out.events, LinkConfidenceEvent)]
+        assert not _of(out.events, LinkDeletedEvent) and not _of(out.events, PlaceDeletedEvent)
+    assert confidences == [0.25, 0.125, 0.0625, 0.03125]  # Eq. 18, below confidence_min from the second
+    assert set(ex.places) == {0, 1, 2, 3} and not out.status.complete
+    assert ex.leg == (2, 1)  # and it tries again
+    # once it gets there, the link is traversed (Eq. 17) and the exploration goes on beyond
+    out = ex.step(43.0, _pose(1.05, 0.0), fix=PlaceFix(1, 0.05, 0.0, 1.0))
+    assert LinkConfidenceEvent(2, 1, 0.515625) in out.events and ex.leg == (1, 0)
+
+
+def test_after_a_failed_leg_the_robot_goes_back_to_the_legs_start_first():
+    """Wedged 0.7 m beside place 2 (a side passage), heading straight for place 1 makes no progress: the
+    next leg takes the robot back to place 2's centre before it heads for place 1 again."""
+    ex = _chain_explorer(ExplorerParams(leg_timeout_base_s=100.0, leg_timeout_per_m_s=0.0))
+    ex.places[3] = Place(3, -1.0, 0.0, False, 0)
+    ex.links[(0, 3)] = Link(0, 3, PREDICTED, 0.5)
+    ex.step(0.0, _pose(2.0, 0.0))
+    ex.step(0.1, _pose(2.0, 0.7, -math.pi / 2))  # dead reckoning: the robot is 0.7 m beside place 2
+    assert ex.leg == (2, 1)
+    out = ex.step(10.5, _pose(2.0, 0.7, -math.pi / 2))
+    assert LinkConfidenceEvent(2, 1, 0.25) in out.events and ex.leg == (2, 1)
+    # facing south, place 2 straight ahead: forward without turning (place 1 would be 55 degrees right)
+    assert out.command.v_mps > 0.0 and abs(out.command.omega_radps) < 1e-6
+    out = ex.step(20.0, _pose(2.0, 0.45, -math.pi / 2))  # progress towards place 2: no failure
+    assert not _of(out.events, LinkConfidenceEvent) and ex._via == 2
+    out = ex.step(21.0, _pose(2.0, 0.15, -math.pi / 2))  # back within 0.2 m: on to place 1
+    assert ex._via == -1 and ex.leg == (2, 1) and out.command.omega_radps < 0.0
+
+
+def test_a_predicted_place_whose_legs_keep_ending_elsewhere_is_deleted():
+    """Places 1 and 2 near-duplicates (the recognizer flips between them): every leg 2 -> 3 towards the
+    predicted 3 ends at place 1, and the robot went back and forth for ever."""
+    ex = _chain_explorer()
+    ex.places[1] = Place(1, 1.7, 0.0, True, 0)  # 0.3 m from place 2
+    ex.places[3] = Place(3, 3.0, 0.0, False, 2)
+    ex.links[(2, 3)] = Link(2, 3, PREDICTED, 0.5)
+    t = 0.0
+    ex.step(t, _pose(2.0, 0.0))
+    for n in range(1, 4):
+        assert ex.leg == (2, 3)
+        t += 1.0
+        out = ex.step(t, _pose(2.1, 0.0), fix=PlaceFix(1, 0.4, 0.0, t))  # recognised at 1 on the way
+        deleted = _of(out.events, PlaceDeletedEvent)
+        if n < 3:
+            assert ex._interrupted == {3: n} and not deleted and ex.leg == (1, 2)
+            t += 1.0
+            ex.step(t, _pose(2.0, 0.0), fix=PlaceFix(2, 0.0, 0.0, t))  # back at 2: towards 3 again
+    assert [e.place_id for e in deleted] == [3] and "3 legs" in deleted[0].reason
+    assert out.status.complete and ex._interrupted == {}
+
+
 def test_arriving_at_another_place_is_a_failed_traversal():
     ex = _chain_explorer()
     ex.places[3] = Place(3, 3.0, 1.0, True, 2)
