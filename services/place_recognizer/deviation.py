@@ -19,8 +19,11 @@ _DEG = math.pi / 180.0
 class DeviationParams:
     """Parameters of :class:`DeviationMap`."""
 
-    enabled: bool = False  # learn the deviations and correct the links' angles with them (off: see docs/places.md)
+    enabled: bool = True  # learn the deviations and correct the links' angles with them (docs/places.md)
     prior_std_rad: float = 4.0 * _DEG  # a place's deviation before any visit: zero, with this spread
+    prior_huber_rad: float = 2.0 * _DEG  # beyond this the prior grows linearly (Huber): a disturbance
+    # is rare and large where it is, and a Gaussian prior shrinks it and spreads noise over the rest
+    prior_iterations: int = 2  # reweighting steps per solve, each from the last estimate's weights
     compass_std_rad: float = 2.0 * _DEG  # white noise of one compass reading
     wheel_std_rad_per_sqrt_m: float = 2.0 * _DEG  # heading error the calibrated wheels add per sqrt(metre)
     wheel_std_rad_per_sqrt_rad: float = 0.03  # ... and per sqrt(radian) turned
@@ -65,10 +68,13 @@ class DeviationMap:
     calibrated on-line against the compass over scan-to-scan increments, ``dc = a dw + b dL`` by
     least squares (the wheels' increments are the precise regressor, the compass's noise is in
     ``dc``; a deviation hardly changes over 0.2 m), with priors ``a = 1``, ``b = 0`` that hold it while
-    the robot has not turned; the wheel heading is integrated as ``a dw + b dL``. The deviations are
-    the least-squares solution of every pair of consecutive visits (variance ``compass_std^2 (1/n_a +
-    1/n_b)`` plus the wheels' error over the path and the turns in between) and a prior ``d ~ N(0,
-    prior_std^2)`` per place (most of a building is undisturbed), one sparse solve per closed visit.
+    the robot has not turned; the wheel heading is integrated as ``a dw + b dL``. The deviations minimise
+    the weighted squares of every pair of consecutive visits (variance ``compass_std^2 (1/n_a +
+    1/n_b)`` plus the wheels' error over the path and the turns in between) and a prior per place
+    centred on 0 (most of a building is undisturbed): ``N(0, prior_std^2)`` within ``prior_huber_rad``,
+    growing linearly beyond (Huber), so that the few disturbed places are not shrunk towards 0 nor
+    the others spread by them. One sparse solve per reweighting step, ``prior_iterations`` steps per
+    closed visit from the last estimate's weights.
     A pair further than ``gate_sd`` from the current estimate is left out (counted in ``rejected``).
     A link's angle is corrected by the mean of its two places' deviations, the mean along the path
     for a deviation that is smooth over a metre.
@@ -201,7 +207,9 @@ class DeviationMap:
         return True
 
     def _solve(self) -> None:
-        """The deviations of every compared place: ``(P + L^T W L) d = L^T W m`` (sparse)."""
+        """The deviations of every compared place: ``(P + L^T W L) d = L^T W m`` (sparse), the prior's
+        weights ``P`` reweighted (Huber) from the previous estimate, ``prior_iterations`` times."""
+        p = self.params
         ids = sorted({i for k in self._edges for i in k})
         if not ids:
             self.estimate = {}
@@ -211,13 +219,17 @@ class DeviationMap:
         e = np.array(list(self._edges.values()), dtype=float).reshape(-1, 2)
         w, wm = e[:, 0], e[:, 1]
         n = len(ids)
-        diag = np.full(n, 1.0 / self.params.prior_std_rad**2)
-        np.add.at(diag, pairs[:, 0], w)
-        np.add.at(diag, pairs[:, 1], w)
+        links = np.zeros(n)
+        np.add.at(links, pairs[:, 0], w)
+        np.add.at(links, pairs[:, 1], w)
         off = sp.coo_matrix((np.concatenate([-w, -w]), (np.concatenate([pairs[:, 0], pairs[:, 1]]),
                                                          np.concatenate([pairs[:, 1], pairs[:, 0]]))), shape=(n, n))
+        off = off.tocsc()
         rhs = np.zeros(n)
         np.add.at(rhs, pairs[:, 1], wm)
         np.add.at(rhs, pairs[:, 0], -wm)
-        d = spla.spsolve((sp.diags(diag) + off).tocsc(), rhs)
-        self.estimate = {pid: float(x) for pid, x in zip(ids, np.atleast_1d(d), strict=True)}
+        d = np.array([self.estimate.get(pid, 0.0) for pid in ids])
+        for _ in range(max(p.prior_iterations, 1)):
+            prior = np.minimum(1.0, p.prior_huber_rad / np.maximum(np.abs(d), 1e-12)) / p.prior_std_rad**2
+            d = np.atleast_1d(spla.spsolve((sp.diags(prior + links, format="csc") + off), rhs))
+        self.estimate = {pid: float(x) for pid, x in zip(ids, d, strict=True)}

@@ -37,6 +37,7 @@ from services.place_recognizer.core import (
     RecognizerOutput,
     RecognizerState,
 )
+from services.place_recognizer.deviation import DeviationParams
 from services.place_recognizer.grid import PlacedScan
 from services.runtime import Node, positive_float
 from services.runtime.checkpoint import Checkpoint, EventLog
@@ -492,6 +493,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="accepted for a uniform command line; the recognizer draws no random numbers")
     parser.add_argument("--no-follow-map", action="store_true",
                         help="keep place centres in dead-reckoning coordinates (ignore map/update)")
+    parser.add_argument("--no-compass-deviation", action="store_true",
+                        help="do not learn the compass's deviation per place nor correct the links' angles by it")
     parser.add_argument("--max-sim-time", type=positive_float, default=None, metavar="S",
                         help="stop after the pose that reaches this simulated time")
     parser.add_argument("--duration-s", type=positive_float, default=None, help="stop after this wall time")
@@ -510,5 +513,7 @@ def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.E
     run(session, PlaceRecognizerNodeParams(follow_map=not args.no_follow_map, max_sim_time_s=args.max_sim_time,
                                            duration_s=args.duration_s, order_timeout_s=args.order_timeout_s,
                                            state_path=args.state, links_log=args.links_log, resume=args.resume,
-                                           resume_at=robot_at_from_args(args)),
+                                           resume_at=robot_at_from_args(args),
+                                           core=PlaceRecognizerParams(deviation=DeviationParams(
+                                               enabled=not args.no_compass_deviation))),
         robot=args.robot, stop=stop)

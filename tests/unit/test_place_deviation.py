@@ -7,8 +7,9 @@ import math
 import msgspec
 import numpy as np
 import pytest
+import scipy.optimize
 
-from services.place_recognizer.deviation import DeviationMap, DeviationState
+from services.place_recognizer.deviation import DeviationMap, DeviationParams, DeviationState
 
 _DEG = math.pi / 180.0
 
@@ -67,25 +68,51 @@ def test_calibration_and_deviations_from_a_corridor():
     assert dm.rejected == 0 and dm.edges >= 19
 
 
-def test_solve_matches_a_dense_least_squares():
-    dm = DeviationMap()
-    _drive(dm, np.random.default_rng(1), laps=2)
-    p = dm.params
+def _edge_system(dm: DeviationMap) -> tuple[list[int], np.ndarray, np.ndarray]:
+    """The pairs of visits as rows ``sqrt(w) (d_b - d_a) = wm / sqrt(w)``."""
     ids = sorted(dm.estimate)
     col = {pid: k for k, pid in enumerate(ids)}
     rows, rhs = [], []
-    for (a, b), (w, wm) in dm._edges.items():  # each edge: sqrt(w) (d_b - d_a) = wm / sqrt(w)
+    for (a, b), (w, wm) in dm._edges.items():
         r = np.zeros(len(ids))
         r[col[b]], r[col[a]] = math.sqrt(w), -math.sqrt(w)
         rows.append(r)
         rhs.append(wm / math.sqrt(w))
-    for pid in ids:  # the prior
-        r = np.zeros(len(ids))
-        r[col[pid]] = 1.0 / p.prior_std_rad
-        rows.append(r)
-        rhs.append(0.0)
-    dense = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)[0]
+    return ids, np.array(rows), np.array(rhs)
+
+
+def test_gaussian_prior_solve_matches_a_dense_least_squares():
+    dm = DeviationMap(DeviationParams(prior_huber_rad=math.inf, prior_iterations=1))
+    _drive(dm, np.random.default_rng(1), laps=2)
+    ids, rows, rhs = _edge_system(dm)
+    prior = np.eye(len(ids)) / dm.params.prior_std_rad
+    dense = np.linalg.lstsq(np.vstack([rows, prior]), np.r_[rhs, np.zeros(len(ids))], rcond=None)[0]
     assert np.allclose([dm.estimate[i] for i in ids], dense, atol=1e-9)
+
+
+def test_huber_prior_solve_reaches_the_minimum_of_its_objective():
+    # enough reweighting steps per solve to converge: the estimate minimises the pairs' squares plus
+    # each place's Huber prior, found here by a general-purpose minimiser instead
+    dm = DeviationMap(DeviationParams(prior_iterations=60))
+    truth = _drive(dm, np.random.default_rng(1), laps=2)
+    ids, rows, rhs = _edge_system(dm)
+    s, k = dm.params.prior_std_rad, dm.params.prior_huber_rad
+
+    def objective(d):
+        r = rows @ d - rhs
+        quad = np.abs(d) <= k
+        rho = np.where(quad, 0.5 * d * d, k * np.abs(d) - 0.5 * k * k) / s**2
+        grad = rows.T @ r + np.where(quad, d, k * np.sign(d)) / s**2
+        return 0.5 * r @ r + rho.sum(), grad
+
+    best = scipy.optimize.minimize(objective, np.zeros(len(ids)), jac=True, method="L-BFGS-B",
+                                   options={"gtol": 1e-12, "ftol": 1e-15, "maxiter": 10000})
+    assert np.allclose([dm.estimate[i] for i in ids], best.x, atol=2e-5)
+    # against the Gaussian prior of the same spread, the Huber prior shrinks the disturbed places less
+    gauss = DeviationMap(DeviationParams(prior_huber_rad=math.inf, prior_iterations=1))
+    _drive(gauss, np.random.default_rng(1), laps=2)
+    disturbed = [pid for pid, d in truth if abs(d) > 4 * _DEG]
+    assert disturbed and all(abs(dm.estimate[p]) > abs(gauss.estimate[p]) for p in disturbed)
 
 
 def test_an_impossible_pair_of_visits_is_left_out():
