@@ -494,9 +494,8 @@ class Explorer:
         assert self.leg is not None and self.robot_xy is not None
         frm, to = self.leg
         target = self.places[to]
-        dist = math.hypot(target.x_m - self.robot_xy[0], target.y_m - self.robot_xy[1])
-        if self._via != NO_PLACE:  # progress counted towards the place gone back to first
-            dist = self.distance_to(self._via)
+        # progress counted towards the place gone back to first, when there is one
+        dist = self.distance_to(to if self._via == NO_PLACE else self._via)
         near = dist <= self.params.arrive_tolerance_m and self._via == NO_PLACE
         if near and not target.confirmed:
             return self._confirm_here(to, frm, now_s)
@@ -747,8 +746,8 @@ class Explorer:
 
     def _output(self, events: list[Event], now_s: float, pose: Pose2) -> ExplorerOutput:
         p = self.params
-        if self._via != NO_PLACE and (self._via not in self.places or self.robot_xy is None
-                                      or self.distance_to(self._via) <= 0.5 * p.back_to_start_m):
+        # (a deleted place is no longer gone back to: _delete_place clears it)
+        if self._via != NO_PLACE and self.distance_to(self._via) <= 0.5 * p.back_to_start_m:
             self._via = NO_PLACE
             if self.leg is not None:  # the leg's end from here: its progress counted afresh
                 self._progress_best_m, self._progress_since_s = math.inf, now_s

@@ -76,14 +76,15 @@ def test_compass_deviation_learned_and_taken_out_of_the_links():
     w = load_world("orebro-office")
     run = InProcessRun(w, InProcessParams(seed=0, max_sim_time_s=3000.0, relax=False))
     rec = run.run()
-    compass, dev = CompassModel(w), run.recognizer.deviations
+    compass, recognizer = CompassModel(w), run.recognizer
+    dev = recognizer.deviations
     truth = {i: p.true_xy for i, p in rec.places.items()}
     true_dev = {i: compass.deviation_rad(*xy) for i, xy in truth.items()}
     rows = []
     for lk in rec.latest_links().values():
         a, b = lk.from_id, lk.to_id
         true_theta = math.atan2(truth[b][1] - truth[a][1], truth[b][0] - truth[a][0])
-        correction = 0.5 * (dev.deviation(a) + dev.deviation(b))  # what the recognizer took out
+        correction = recognizer._correction(a, b)  # what the recognizer took out
         rows.append((0.5 * (true_dev[a] + true_dev[b]), wrap_angle(lk.theta_rad - true_theta),
                      wrap_angle(lk.theta_rad + correction - true_theta)))
     true_corr, corrected, uncorrected = np.abs(np.array(rows)).T
