@@ -106,6 +106,7 @@ class LocalizationBelief(Message, frozen=True, kw_only=True):
     offset_y_m: float
     offset_var_m2: float  # variance of the offset estimate (per axis)
     hypotheses: list[Hypothesis] = []  # the best few, most probable first
+    pose: Pose2 | None = None  # the compass dead-reckoned pose of the scan (same stamp) the belief took in
 
 
 class PlacePredicted(Message, frozen=True, kw_only=True):

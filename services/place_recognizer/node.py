@@ -371,7 +371,7 @@ class RecognizerShell:
         belief = LocalizationBelief(
             stamp=scan.stamp, seq=self._belief_seq, place_id=loc.place_id, probability=loc.probability,
             offset_x_m=loc.offset_x_m, offset_y_m=loc.offset_y_m, offset_var_m2=loc.offset_var_m2,
-            hypotheses=[Hypothesis(place_id=i, probability=p) for i, p in loc.hypotheses])
+            hypotheses=[Hypothesis(place_id=i, probability=p) for i, p in loc.hypotheses], pose=dr.compass)
         self._belief_seq += 1
         self._last_belief = belief
         links = self._links(out, scan.stamp)

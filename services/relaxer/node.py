@@ -13,7 +13,6 @@ import zenoh
 
 from messages import topics
 from messages.types import (
-    DeadReckonedPose,
     LinkDeleted,
     LinkMeasured,
     LocalizationBelief,
@@ -35,6 +34,7 @@ class RelaxerParams(msgspec.Struct, frozen=True, kw_only=True):
     store_path: str = "relaxmap-map.sqlite"  # the SQLite file of the map (created if missing)
     seed: int = 0  # seed of the noise estimator's posterior samples
     min_belief_for_scan: float = 0.5  # a sonar scan is kept for the grid when localised this surely
+    pairing_window: int = 32  # scans (and beliefs) kept while their partner of the same stamp is awaited
     max_grid_cells: int = 4_000_000  # a grid query that would need more cells is refused
     settle_after_s: float = 0.2  # wall time without a map event after which the map is solved exactly
     online: OnlineParams = OnlineParams()
@@ -49,7 +49,8 @@ def run(session: zenoh.Session, params: RelaxerParams, *, robot: str = topics.DE
     if stored.places:
         log.info("resumed %d places, %d links, version %d from %s", len(stored.places), len(stored.links),
                  stored.version, params.store_path)
-    latest: dict[str, object] = {}
+    scans: dict[int, SonarScan] = {}  # sonar scans awaiting their belief, by stamp in microseconds
+    beliefs: dict[int, LocalizationBelief] = {}  # beliefs awaiting their scan
     last_event = [time.monotonic()]
     with Node(session, "relaxer", robot=robot) as node:
         pub = node.publisher(topics.map_update(robot), MapUpdate)
@@ -89,19 +90,30 @@ def run(session: zenoh.Session, params: RelaxerParams, *, robot: str = topics.DE
                 apply(outcome, t0)
 
         def on_belief(msg: LocalizationBelief) -> None:
-            latest["belief"] = msg
-
-        def on_dr(msg: DeadReckonedPose) -> None:
-            latest["dr"] = msg
+            pair(beliefs, msg, scans)
 
         def on_sonar(msg: SonarScan) -> None:
-            """Keep the scan for the grid, with the place it was taken at and the offset from it."""
-            belief, dr = latest.get("belief"), latest.get("dr")
-            if not isinstance(dr, DeadReckonedPose):
+            pair(scans, msg, beliefs)
+
+        def pair(mine: dict, msg: SonarScan | LocalizationBelief, theirs: dict) -> None:
+            """A scan and the belief of the same stamp (the recognizer's, which carries the scan's
+            dead-reckoned pose) make one stored scan, in whichever order they come."""
+            key = round(msg.stamp * 1e6)
+            other = theirs.pop(key, None)
+            if other is None:
+                mine[key] = msg
+                while len(mine) > params.pairing_window:
+                    del mine[min(mine)]  # its partner never came (a scan the recognizer could not pair)
                 return
-            pose = dr.compass
-            if (isinstance(belief, LocalizationBelief) and belief.place_id >= 0
-                    and belief.probability >= params.min_belief_for_scan):
+            scan, belief = (msg, other) if isinstance(msg, SonarScan) else (other, msg)
+            keep_scan(scan, belief)
+
+        def keep_scan(msg: SonarScan, belief: LocalizationBelief) -> None:
+            """Keep the scan for the grid, with the place it was taken at and the offset from it."""
+            if belief.pose is None:
+                return
+            pose = belief.pose
+            if belief.place_id >= 0 and belief.probability >= params.min_belief_for_scan:
                 place = (belief.place_id, belief.offset_x_m, belief.offset_y_m)  # the recognizer's offset
             else:
                 place = core.anchor(pose.x_m, pose.y_m)  # the nearest place, offset by dead reckoning
@@ -162,7 +174,6 @@ def run(session: zenoh.Session, params: RelaxerParams, *, robot: str = topics.DE
         node.subscribe(topics.places_deleted(robot), PlaceDeleted, on_place_deleted, history=True)
         node.subscribe(topics.links_deleted(robot), LinkDeleted, on_link_deleted, history=True)
         node.subscribe(topics.localization(robot), LocalizationBelief, on_belief)
-        node.subscribe(topics.dr_pose(robot), DeadReckonedPose, on_dr)
         node.subscribe(topics.sonar(robot), SonarScan, on_sonar)
         node.queryable(topics.map_graph(robot), q_graph)
         node.queryable(topics.map_place(robot, "*"), q_place)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import os
 import signal
+import time
 
 import pytest
 
@@ -12,6 +13,7 @@ from messages import topics
 from messages.codec import codec
 from messages.types import (
     LinkMeasured,
+    LocalizationBelief,
     MapGraph,
     MapStats,
     MapUpdate,
@@ -19,7 +21,9 @@ from messages.types import (
     PathReply,
     PlaceConfirmed,
     PlaceReply,
+    Pose2,
     ScanSet,
+    SonarScan,
 )
 from services.runtime import AliveWatcher, QueryFailed, query
 from tests.conftest import wait_until
@@ -139,3 +143,41 @@ def test_resume_after_sigkill(relaxer, processes, tmp_path):
     assert wait_until(lambda: query(session, topics.map_stats(ROBOT), type_=MapStats).links == 5, 10)
     final = query(session, topics.map_graph(ROBOT), type_=MapGraph)
     assert final.version > before.version and len(final.places) == 5
+
+
+def test_a_scan_is_kept_with_the_belief_of_its_stamp(relaxer):
+    """A sonar scan is stored with the place, offset and dead-reckoned pose of the recognizer's belief
+    of the same stamp, whichever of the two arrives first; a belief of another stamp is not used."""
+    session, _, proc, _, bus = relaxer
+    _square(bus)
+    assert wait_until(lambda: bus.updates and bus.updates[-1].links == 4, 10)
+    sonar = session.declare_publisher(topics.sonar(ROBOT))
+    belief = session.declare_publisher(topics.localization(ROBOT))
+    assert wait_until(lambda: sonar.matching_status and belief.matching_status, 10)
+
+    def scan(stamp):
+        sonar.put(codec(SonarScan).encode(SonarScan(
+            stamp=stamp, seq=round(stamp), angles_rad=[0.0, math.pi], ranges_m=[1.0, 2.0], beam_width_rad=0.4,
+            min_range_m=0.1, max_range_m=6.5)))
+
+    def fix(stamp, place, off, pose):
+        belief.put(codec(LocalizationBelief).encode(LocalizationBelief(
+            stamp=stamp, seq=round(stamp), place_id=place, probability=0.9, offset_x_m=off[0], offset_y_m=off[1],
+            offset_var_m2=0.01, pose=Pose2(x_m=pose[0], y_m=pose[1], heading_rad=pose[2]))))
+
+    scan(20.0)
+    time.sleep(0.3)  # so that it is handled first
+    fix(19.0, 2, (0.4, 0.4), (9.0, 9.0, 0.0))  # the previous scan's belief: never paired with this one
+    fix(20.0, 1, (0.1, -0.2), (1.1, -0.15, 0.5))  # after its scan
+    fix(21.0, 2, (-0.05, 0.03), (1.05, 1.08, 1.5))  # before its scan
+    time.sleep(0.3)
+    scan(21.0)
+    assert wait_until(lambda: len(query(session, topics.map_scans(ROBOT), type_=ScanSet).scans) == 2, 10)
+    got = query(session, topics.map_scans(ROBOT), type_=ScanSet).scans
+    assert [(s.stamp, s.place_id) for s in got] == [(20.0, 1), (21.0, 2)]
+    assert (got[0].offset_x_m, got[0].offset_y_m, got[0].dr_x_m, got[0].dr_y_m, got[0].heading_rad) == \
+        pytest.approx((0.1, -0.2, 1.1, -0.15, 0.5))
+    assert (got[1].offset_x_m, got[1].offset_y_m, got[1].dr_x_m, got[1].dr_y_m) == pytest.approx((-0.05, 0.03, 1.05, 1.08))
+    assert got[1].ranges_m == [1.0, 2.0]
+    sonar.undeclare()
+    belief.undeclare()
