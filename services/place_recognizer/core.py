@@ -175,7 +175,8 @@ class LinkAccumulator:
     from_id: int
     to_id: int
     sum_w: float  # sum of 1 / T_k
-    sum_wd: np.ndarray  # sum of D_k / T_k
+    sum_wd: tuple[float, float]  # sum of D_k / T_k (two floats, not an array: the checkpoint saved with
+    # every scan encodes every accumulator, and an array costs the encoder a hook call)
     sum_wstep: float  # sum of mean_step_k / T_k
     traversals: int
     applied_rad: float = 0.0  # the deviation correction of the last published estimate
@@ -186,29 +187,29 @@ class LinkAccumulator:
     def first(cls, from_id: int, to_id: int, disp: np.ndarray, *, steps: int, mean_step_m: float) -> LinkAccumulator:
         """The link's first traversal: displacement ``disp`` from ``from_id`` to ``to_id``."""
         w = 1.0 / steps
-        return cls(from_id, to_id, w, w * np.asarray(disp, dtype=float), w * mean_step_m, 1)
+        return cls(from_id, to_id, w, (w * float(disp[0]), w * float(disp[1])), w * mean_step_m, 1)
 
     def add(self, from_id: int, to_id: int, disp: np.ndarray, *, steps: int, mean_step_m: float,
             gate_m: float) -> bool:
         """Fuse a later traversal; ``False`` (and nothing changes) when it is further than ``gate_m``."""
-        disp = np.asarray(disp, dtype=float)
+        dx, dy = float(disp[0]), float(disp[1])
         if (from_id, to_id) != (self.from_id, self.to_id):
-            disp = -disp
-        if np.hypot(*(disp - self.sum_wd / self.sum_w)) > gate_m:
+            dx, dy = -dx, -dy
+        if np.hypot(dx - self.sum_wd[0] / self.sum_w, dy - self.sum_wd[1] / self.sum_w) > gate_m:
             return False
         w = 1.0 / steps
         self.sum_w += w
-        self.sum_wd = self.sum_wd + w * disp
+        self.sum_wd = (self.sum_wd[0] + w * dx, self.sum_wd[1] + w * dy)
         self.sum_wstep += w * mean_step_m
         self.traversals += 1
         return True
 
     def estimate(self, rotate_rad: float = 0.0) -> LinkEstimate:
         """The fused measurement, its angle less ``rotate_rad``."""
-        d = self.sum_wd / self.sum_w
+        dx, dy = self.sum_wd[0] / self.sum_w, self.sum_wd[1] / self.sum_w
         return LinkEstimate(
-            from_id=self.from_id, to_id=self.to_id, d_m=float(np.hypot(*d)),
-            theta_rad=float(wrap_angle(np.arctan2(d[1], d[0]) - rotate_rad)), steps=max(1, int(round(1.0 / self.sum_w))),
+            from_id=self.from_id, to_id=self.to_id, d_m=float(np.hypot(dx, dy)),
+            theta_rad=float(wrap_angle(np.arctan2(dy, dx) - rotate_rad)), steps=max(1, int(round(1.0 / self.sum_w))),
             mean_step_m=float(self.sum_wstep / self.sum_w), traversals=self.traversals,
         )
 
@@ -414,9 +415,9 @@ class PlaceRecognizer:
         for lk in links:
             if lk.from_id in places and lk.to_id in places:
                 w = 1.0 / max(lk.steps, 1)
-                disp = lk.d_m * np.array([np.cos(lk.theta_rad), np.sin(lk.theta_rad)])
+                disp = (w * (lk.d_m * float(np.cos(lk.theta_rad))), w * (lk.d_m * float(np.sin(lk.theta_rad))))
                 self._links[frozenset((lk.from_id, lk.to_id))] = LinkAccumulator(
-                    lk.from_id, lk.to_id, w, w * disp, w * lk.mean_step_m, lk.traversals, corrected=True)
+                    lk.from_id, lk.to_id, w, disp, w * lk.mean_step_m, lk.traversals, corrected=True)
         n = len(ids)
         probs = np.zeros(n)
         offsets = np.zeros((n, 2))
