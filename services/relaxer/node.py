@@ -89,24 +89,26 @@ def run(session: zenoh.Session, params: RelaxerParams, *, robot: str = topics.DE
             if outcome is not None:
                 apply(outcome, t0)
 
+        # a scan and the belief of the same stamp (the recognizer's, which carries the scan's
+        # dead-reckoned pose) make one stored scan, in whichever order they come
         def on_belief(msg: LocalizationBelief) -> None:
-            pair(beliefs, msg, scans)
+            scan = scans.pop(round(msg.stamp * 1e6), None)
+            if scan is None:
+                wait(beliefs, msg)
+            else:
+                keep_scan(scan, msg)
 
         def on_sonar(msg: SonarScan) -> None:
-            pair(scans, msg, beliefs)
+            belief = beliefs.pop(round(msg.stamp * 1e6), None)
+            if belief is None:
+                wait(scans, msg)
+            else:
+                keep_scan(msg, belief)
 
-        def pair(mine: dict, msg: SonarScan | LocalizationBelief, theirs: dict) -> None:
-            """A scan and the belief of the same stamp (the recognizer's, which carries the scan's
-            dead-reckoned pose) make one stored scan, in whichever order they come."""
-            key = round(msg.stamp * 1e6)
-            other = theirs.pop(key, None)
-            if other is None:
-                mine[key] = msg
-                while len(mine) > params.pairing_window:
-                    del mine[min(mine)]  # its partner never came (a scan the recognizer could not pair)
-                return
-            scan, belief = (msg, other) if isinstance(msg, SonarScan) else (other, msg)
-            keep_scan(scan, belief)
+        def wait(waiting: dict, msg: SonarScan | LocalizationBelief) -> None:
+            waiting[round(msg.stamp * 1e6)] = msg
+            while len(waiting) > params.pairing_window:
+                del waiting[min(waiting)]  # its partner never came (a scan the recognizer could not pair)
 
         def keep_scan(msg: SonarScan, belief: LocalizationBelief) -> None:
             """Keep the scan for the grid, with the place it was taken at and the offset from it."""
