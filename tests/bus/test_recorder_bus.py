@@ -335,7 +335,7 @@ def test_max_sim_time_ends_the_run(hub, processes, tmp_path):
     assert proc.returncode == 0, _output(proc)
     assert verify(tmp_path / "recording.rrd").returncode == 0
     rows = read_recording(tmp_path / "recording.rrd")
-    assert [t for t, _ in rows["/map/robot/truth/pose"]] == [0.5]
+    assert [t for t, _ in rows["/map/robot/truth/pose"] if t is not None] == [0.5]  # None: its style, static
 
 
 def test_an_exception_still_leaves_a_valid_file(tmp_path):
