@@ -43,6 +43,9 @@ SIM_TIME = "sim_time"  # timeline of simulated seconds (each message's stamp)
 MAP_VERSION = "map_version"  # timeline of map versions (MapUpdate.version), set from the first update on
 FLUSH_TIMEOUT_S = 10.0  # longest wait for the stream to reach the file when closing
 DRAIN_S = 1.0  # after the stop, messages already queued are still recorded for at most this long
+# A pose's arrows are sent this many at a time, as columns (rr.send_columns): 46 us an arrow instead of
+# 140 us for one rr.log each. At the default 0.5 s a pose, that is every 10 simulated seconds.
+ARROW_BATCH = 20
 
 # Entity paths. Everything spatial lives under MAP, in metres, world frame.
 MAP = "map"
@@ -183,6 +186,7 @@ class Recorder:
         self._grid_pending: float | None = None  # stamp of a request made while another was in flight
         self._stamp: float | None = None  # simulated time of the message being handled
         self._map_dirty: float | None = None  # when they last changed without being logged (map_period_s)
+        self._arrows: dict[str, list[tuple[float, np.ndarray, np.ndarray]]] = {}  # pose source -> arrows to send
         # Every key is present from the start: health copies this dict from another thread.
         node.detail.update({"handled": 0, "map_updates": 0, "map_version": -1, "grid_queries": 0, "grid_failures": 0,
                             "grids_logged": 0, "grid_skipped": 0, "places": 0, "predicted": 0,
@@ -321,9 +325,25 @@ class Recorder:
         st, rec = self.state, self.rec
         if st.live_due(source, stamp):
             origin, vector = st.arrow(source)
-            rec.log(pose_path(source), rr.Arrows2D.from_fields(origins=[origin], vectors=[vector]))
+            arrows = self._arrows.setdefault(source, [])
+            arrows.append((stamp, origin, vector))
+            if len(arrows) >= ARROW_BATCH:
+                self._send_arrows(source)
         if st.trail_due(source, stamp):
             rec.log(trail_path(source), rr.LineStrips2D.from_fields(strips=[st.trail(source)]))
+
+    def _send_arrows(self, source: str) -> None:
+        """The arrows of ``source`` kept since the last send, as one column per component."""
+        arrows = self._arrows.pop(source, [])
+        if arrows:
+            stamps, origins, vectors = zip(*arrows)
+            self.rec.send_columns(pose_path(source), indexes=[rr.TimeColumn(SIM_TIME, duration=stamps)],
+                                  columns=rr.Arrows2D.columns(origins=np.array(origins), vectors=np.array(vectors)))
+
+    def flush_poses(self) -> None:
+        """Send every arrow still kept (at the end of the recording)."""
+        for source in list(self._arrows):
+            self._send_arrows(source)
 
     def on_truth(self, msg: TruthPose) -> None:
         if self._at(msg.stamp):
@@ -508,8 +528,9 @@ def run(session: zenoh.Session, params: RecorderParams, *, rrd_path: Path, robot
         if recorder is not None:
             try:
                 recorder.flush_map()
+                recorder.flush_poses()
             except Exception:
-                log.exception("recorder: the last change of the map could not be logged")
+                log.exception("recorder: the last change of the map or the last poses could not be logged")
         close_recording(rec)
         if recorder is not None:
             recorder.close()
