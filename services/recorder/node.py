@@ -187,6 +187,7 @@ class Recorder:
         self._stamp: float | None = None  # simulated time of the message being handled
         self._map_dirty: float | None = None  # when they last changed without being logged (map_period_s)
         self._arrows: dict[str, list[tuple[float, np.ndarray, np.ndarray]]] = {}  # pose source -> arrows to send
+        self._labelled: dict[str, np.ndarray] = {}  # places entity -> the ids its labels were last logged for
         # Every key is present from the start: health copies this dict from another thread.
         node.detail.update({"handled": 0, "map_updates": 0, "map_version": -1, "grid_queries": 0, "grid_failures": 0,
                             "grids_logged": 0, "grid_skipped": 0, "places": 0, "predicted": 0,
@@ -251,10 +252,12 @@ class Recorder:
         """The places and the links, whole, at the current time."""
         st, rec = self.state, self.rec
         places = st.places()
-        rec.log(CONFIRMED, rr.Points2D.from_fields(positions=places.confirmed_xy,
-                                                   labels=[str(i) for i in places.confirmed_ids]))
-        rec.log(PREDICTED, rr.Points2D.from_fields(positions=places.predicted_xy,
-                                                   labels=[str(i) for i in places.predicted_ids]))
+        for path, ids, xy in ((CONFIRMED, places.confirmed_ids, places.confirmed_xy),
+                              (PREDICTED, places.predicted_ids, places.predicted_xy)):
+            # the ids as labels only when they changed: the viewer keeps the latest labels of the entity
+            labels = None if np.array_equal(ids, self._labelled.get(path)) else ids.astype(str)
+            rec.log(path, rr.Points2D.from_fields(positions=xy, labels=labels))
+            self._labelled[path] = ids
         links = st.links()
         rec.log(TRAVERSED, rr.LineStrips2D.from_fields(strips=links.traversed))
         rec.log(INFERRED, rr.LineStrips2D.from_fields(strips=links.inferred))

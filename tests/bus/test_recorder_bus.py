@@ -279,8 +279,15 @@ def test_map_changes_between_updates_are_logged_once_per_period(hub, processes, 
     assert [t for t, _ in confirmed] == pytest.approx([0.5, 0.8, 1.0, 1.5])
     np.testing.assert_allclose(confirmed[1][1], [[0, 0], [2.0, 0.0]], atol=1e-6)
     np.testing.assert_allclose(confirmed[2][1], [[0, 0], [2.2, 0.1]], atol=1e-6)
-    predicted = [(t, v["Points2D:labels"]) for t, v in rows["/map/places/predicted"] if t is not None]
+    # the labels in force at each time: a row carries them only when the ids changed
+    predicted, labels, relabelled = [], None, []
+    for t, v in rows["/map/places/predicted"]:
+        if t is not None:
+            relabelled.append("Points2D:labels" in v)
+            labels = v.get("Points2D:labels", labels)
+            predicted.append((t, labels))
     assert predicted[1] == (pytest.approx(0.8), ["2"]) and predicted[-1] == (pytest.approx(1.5), ["2", "3"])
+    assert relabelled == [True, True, False, True]  # ids [] (0.5), [2] (0.8), [2] (the update), [2, 3]
     traversed = [t for t, v in rows["/map/links/traversed"] if t is not None and v.get("LineStrips2D:strips")]
     assert traversed and traversed[0] == pytest.approx(0.8)
 
