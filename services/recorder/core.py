@@ -292,9 +292,12 @@ class RecorderState:
         self.traversed.pop(key, None)
         self.inferred.pop(key, None)
 
-    def links(self) -> LinksView:
-        """Segments of the links whose both places are on the map (others wait for their places)."""
-        ids, xy, _ = self._table()
+    def links(self, places: PlacesView | None = None) -> LinksView:
+        """Segments of the links whose both places are on the map (others wait for their places);
+        ``places``, the :meth:`places` of the same moment, saves building them again."""
+        places = places if places is not None else self.places()
+        ids = np.concatenate([places.confirmed_ids, places.predicted_ids])
+        xy = np.concatenate([places.confirmed_xy, places.predicted_xy])
         order = np.argsort(ids, kind="stable")
         ids, xy = ids[order], xy[order]
         t_ids, t_segs = _segments(self.traversed, ids, xy)

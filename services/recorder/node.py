@@ -258,7 +258,7 @@ class Recorder:
             labels = None if np.array_equal(ids, self._labelled.get(path)) else ids.astype(str)
             rec.log(path, rr.Points2D.from_fields(positions=xy, labels=labels))
             self._labelled[path] = ids
-        links = st.links()
+        links = st.links(places)
         rec.log(TRAVERSED, rr.LineStrips2D.from_fields(strips=links.traversed))
         rec.log(INFERRED, rr.LineStrips2D.from_fields(strips=links.inferred))
         st.map_logged = self._map_dirty if self._map_dirty is not None else self._stamp
