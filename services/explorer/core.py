@@ -51,6 +51,9 @@ class ExplorerParams:
     # many (the recognizer keeps putting the robot at a near-duplicate of the leg's start)
     back_to_start_m: float = 0.4  # after a failed leg, a robot this far from the leg's start goes back to
     # within half of it before the next leg (wedged beside a place, heading straight on for the next fails)
+    max_held_failures: int = 4  # a link whose deletion would leave no predicted place within the robot's reach
+    # (while some are left elsewhere) is kept through this many failures below confidence_min, each one a
+    # request to the recognizer to relocalise; then Eq. 18 deletes it
     max_speed_mps: float = 0.3  # forward speed limit
     max_turn_radps: float = 1.0  # turn rate limit
     heading_gain: float = 1.5  # turn rate per radian of heading error, 1/s
@@ -225,6 +228,8 @@ class ExplorerState(msgspec.Struct, frozen=True):
     progress_since_s: float = 0.0
     via: int = -1  # after a failed leg: the place the robot goes back to first (-1: none)
     interrupted: dict[int, int] = msgspec.field(default_factory=dict)  # predicted place -> legs ended elsewhere
+    held: list[tuple[int, int, int]] = msgspec.field(default_factory=list)  # (a, b, failures held) per link
+    relocalisations: int = 0  # relocalisation requests so far
 
 
 class Explorer:
@@ -269,7 +274,10 @@ class Explorer:
       place reaches is deleted, and every confirmed one left without a traversed or inferred link.
       The last link of the place a leg starts from is kept, however low: legs that fail from every
       link of the robot's place mean the robot is stuck or lost, and deleting them would prune the
-      whole map beyond it and end the exploration. After a failed leg, a robot more than
+      whole map beyond it and end the exploration. A link whose deletion would leave no predicted
+      place within the robot's reach, while some are left elsewhere, is kept through
+      ``max_held_failures`` failures below ``confidence_min``, and each of them asks the recognizer to
+      relocalise (:attr:`relocalisations`, carried by the velocity command). After a failed leg, a robot more than
       ``back_to_start_m`` from the leg's start goes back to it before heading for the next leg's end.
       A predicted place is deleted once ``max_interruptions`` legs towards it have ended at another
       place (the recognizer putting the robot at a near-duplicate of the leg's start, for ever).
@@ -301,6 +309,8 @@ class Explorer:
         self._progress_since_s = 0.0  # ... first reached at this time
         self._via = NO_PLACE  # after a failed leg: the place to go back to before the leg's end
         self._interrupted: dict[int, int] = {}  # predicted place -> legs towards it that ended at another place
+        self._held: dict[tuple[int, int], int] = {}  # link -> failures below confidence_min it was kept through
+        self.relocalisations = 0  # requests to the recognizer to relocalise, so far (see _failed)
         self._fix_after_s = -math.inf  # localizations older than this are stale (before a confirmation)
         self._counts: tuple[int, int, int, int] | None = None  # places, links, confirmed, traversed or inferred
 
@@ -315,7 +325,8 @@ class Explorer:
             moving=list(self._moving), recover_until=self._recover_until, recover_cmd=self._recover_cmd,
             stalls=self.stalls, leg_start_s=self._leg_start_s, blocked_since=self._blocked_since,
             fix_after_s=self._fix_after_s, progress_best_m=self._progress_best_m,
-            progress_since_s=self._progress_since_s, via=self._via, interrupted=dict(self._interrupted))
+            progress_since_s=self._progress_since_s, via=self._via, interrupted=dict(self._interrupted),
+            held=[(a, b, n) for (a, b), n in self._held.items()], relocalisations=self.relocalisations)
 
     def restore_snapshot(self, state: ExplorerState) -> None:
         """Take up the state of :meth:`snapshot` (of an explorer with the same parameters)."""
@@ -334,6 +345,8 @@ class Explorer:
         self._progress_best_m, self._progress_since_s = state.progress_best_m, state.progress_since_s
         self._via = state.via
         self._interrupted = dict(state.interrupted)
+        self._held = {_key(a, b): n for a, b, n in state.held}
+        self.relocalisations = state.relocalisations
 
     # --- inputs -------------------------------------------------------------------------------
 
@@ -586,27 +599,53 @@ class Explorer:
         else:
             link.kind = TRAVERSED
             link.confidence = confidence_after_traversal(link.confidence, p.confidence_rate)
+        self._held.pop(_key(a, b), None)  # travelled after all: its failures were the belief's
         return [LinkConfidenceEvent(a, b, link.confidence)]
 
     def _failed(self, a: int, b: int, reason: str, *, robot_at: int = NO_PLACE) -> list[Event]:
-        """A failed traversal of ``a -> b`` (Eq. 18); deletes the link below the threshold, unless it is
-        the last link of ``robot_at``, the place the robot is still at: the rest of the map would be
-        pruned as cut off from the robot, when the failures say that the robot is stuck or lost there."""
+        """A failed traversal of ``a -> b`` (Eq. 18); deletes the link below the threshold, with two
+        exceptions for a leg from ``robot_at``, the place the robot is still at. Its last link is kept
+        however often it fails: the rest of the map would be pruned as cut off from the robot, when the
+        failures say that the robot is stuck or lost there. A link whose deletion would leave every
+        predicted place out of the robot's reach (some being left elsewhere) is kept through
+        ``max_held_failures`` failures below the threshold, each one a request to the recognizer to
+        relocalise (:attr:`relocalisations`): legs failing from where the belief puts the robot are
+        what a wrong belief looks like to the explorer, and the prune would end the exploration."""
         p = self.params
-        link = self.links.get(_key(a, b))
+        key = _key(a, b)
+        link = self.links.get(key)
         if link is None:
             return []
         link.confidence = confidence_after_failure(link.confidence, p.confidence_rate)
         events: list[Event] = [LinkConfidenceEvent(a, b, link.confidence)]
-        if robot_at != NO_PLACE and not any(robot_at in key and key != _key(a, b) and other.kind != PREDICTED
-                                            for key, other in self.links.items()):
+        if robot_at != NO_PLACE and not any(robot_at in k and k != key and other.kind != PREDICTED
+                                            for k, other in self.links.items()):
             return events
-        if link.confidence < p.confidence_min:
-            del self.links[_key(a, b)]
-            events.append(LinkDeletedEvent(a, b, f"confidence {link.confidence:.3f} below "
-                                                  f"{p.confidence_min} ({reason})"))
-            self.loop_queue = [q for q in self.loop_queue if _key(*q) != _key(a, b)]
+        if link.confidence >= p.confidence_min:
+            return events
+        if robot_at != NO_PLACE and self._cuts_off(robot_at, key):
+            held = self._held[key] = self._held.get(key, 0) + 1
+            if held <= p.max_held_failures:
+                self.relocalisations += 1
+                return events
+        self._held.pop(key, None)
+        del self.links[key]
+        events.append(LinkDeletedEvent(a, b, f"confidence {link.confidence:.3f} below "
+                                              f"{p.confidence_min} ({reason})"))
+        self.loop_queue = [q for q in self.loop_queue if _key(*q) != key]
         return events
+
+    def _cuts_off(self, robot_at: int, key: tuple[int, int]) -> bool:
+        """Whether, without link ``key``, no predicted place is reachable from ``robot_at`` while some
+        predicted place is left."""
+        predicted = {pid for pid, q in self.places.items() if not q.confirmed}
+        if not predicted:
+            return False
+        graph = self.graph()
+        a, b = key
+        graph[a].pop(b, None)
+        graph[b].pop(a, None)
+        return not predicted & reachable(graph, robot_at)
 
     def _fail_leg(self, now_s: float, reason: str) -> list[Event]:
         assert self.leg is not None
@@ -632,6 +671,7 @@ class Explorer:
         if self._via == pid:
             self._via = NO_PLACE
         self._interrupted.pop(pid, None)
+        self._held = {k: n for k, n in self._held.items() if pid not in k}
         if self.leg is not None and pid in self.leg:
             self.leg = None
         events.append(PlaceDeletedEvent(pid, reason))

@@ -175,6 +175,10 @@ def test_traversal_raises_and_failure_lowers_confidence_then_deletes_link_and_un
     ex = _chain_explorer(ExplorerParams(leg_timeout_base_s=10.0, leg_timeout_per_m_s=0.0))
     ex.places[3] = Place(3, -1.0, 0.0, False, 0)
     ex.links[(0, 3)] = Link(0, 3, PREDICTED, 0.5)
+    # predicted 4 beyond place 2, dearer to reach than 3 (path length over confidence 10 against 6)
+    ex.places[4] = Place(4, 3.0, 0.0, False, 2)
+    ex.links[(2, 4)] = Link(2, 4, PREDICTED, 0.1)
+    ex._next_id = 5
     ex.step(0.0, _pose(2.0, 0.0))
     assert ex.leg == (2, 1) and ex.target == 3
     # the recognizer reports place 1: the leg succeeded, Eq. 17
@@ -189,10 +193,54 @@ def test_traversal_raises_and_failure_lowers_confidence_then_deletes_link_and_un
     assert LinkConfidenceEvent(1, 0, 0.125) in out.events
     deleted_links = _of(out.events, LinkDeletedEvent)
     assert [(e.from_id, e.to_id) for e in deleted_links] == [(1, 0)]
-    # 0 and the predicted 3 hang off the deleted link: no path reaches them
+    # 0 and the predicted 3 hang off the deleted link: no path reaches them; 4 is still in reach
     assert sorted(e.place_id for e in _of(out.events, PlaceDeletedEvent)) == [0, 3]
-    assert set(ex.places) == {1, 2}
-    assert out.status.complete
+    assert set(ex.places) == {1, 2, 4}
+    assert not out.status.complete and ex.target == 4 and ex.relocalisations == 0
+
+
+def test_a_link_that_would_cut_the_robot_off_from_every_predicted_place_is_held_and_asks_to_relocalise():
+    """The same failing leg 1 -> 0 with nothing predicted beyond place 2: deleting the link would leave
+    no predicted place within reach and end the exploration (a lost robot's legs fail like that). It is
+    kept through max_held_failures failures below confidence_min, each a relocalisation request."""
+    params = ExplorerParams(leg_timeout_base_s=10.0, leg_timeout_per_m_s=0.0, max_held_failures=3)
+    ex = _chain_explorer(params)
+    ex.places[3] = Place(3, -1.0, 0.0, False, 0)
+    ex.links[(0, 3)] = Link(0, 3, PREDICTED, 0.5)
+    ex.step(0.0, _pose(2.0, 0.0))
+    ex.step(1.0, _pose(1.05, 0.0), fix=PlaceFix(1, 0.05, 0.0, 1.0))
+    assert ex.leg == (1, 0)
+    t, confidences, requests = 1.0, [], []
+    for _ in range(4):  # 0.25, then below 0.2: held three times
+        t += 10.5
+        out = ex.step(t, _pose(1.05, 0.0))
+        confidences += [e.confidence for e in _of(out.events, LinkConfidenceEvent)]
+        requests.append(ex.relocalisations)
+        assert not _of(out.events, LinkDeletedEvent) and not out.status.complete and ex.leg == (1, 0)
+    assert confidences == [0.25, 0.125, 0.0625, 0.03125] and requests == [0, 1, 2, 3]
+    # the snapshot keeps the count of held failures and of requests
+    clone = Explorer(params)
+    clone.restore_snapshot(ex.snapshot())
+    assert clone._held == {(0, 1): 3} and clone.relocalisations == 3
+    # a fourth failure below the threshold: Eq. 18 after all, and the prune ends the exploration
+    out = ex.step(t + 10.5, _pose(1.05, 0.0))
+    assert [(e.from_id, e.to_id) for e in _of(out.events, LinkDeletedEvent)] == [(1, 0)]
+    assert sorted(e.place_id for e in _of(out.events, PlaceDeletedEvent)) == [0, 3]
+    assert ex.relocalisations == 3 and ex._held == {} and out.status.complete
+
+
+def test_a_held_link_travelled_after_all_starts_its_count_afresh():
+    params = ExplorerParams(leg_timeout_base_s=10.0, leg_timeout_per_m_s=0.0, max_held_failures=3)
+    ex = _chain_explorer(params)
+    ex.places[3] = Place(3, -1.0, 0.0, False, 0)
+    ex.links[(0, 3)] = Link(0, 3, PREDICTED, 0.5)
+    ex.step(0.0, _pose(2.0, 0.0))
+    ex.step(1.0, _pose(1.05, 0.0), fix=PlaceFix(1, 0.05, 0.0, 1.0))
+    ex.step(11.5, _pose(1.05, 0.0))
+    ex.step(22.0, _pose(1.05, 0.0))
+    assert ex._held == {(0, 1): 1} and ex.relocalisations == 1
+    out = ex.step(23.0, _pose(0.05, 0.0), fix=PlaceFix(0, 0.05, 0.0, 23.0))  # relocalised: there after all
+    assert LinkConfidenceEvent(1, 0, 0.5625) in out.events and ex._held == {} and ex.leg == (0, 3)
 
 
 def test_the_last_link_of_the_robots_place_is_kept_however_often_its_legs_fail():
