@@ -179,6 +179,9 @@ class VelocityCommand(Message, frozen=True, kw_only=True):
     ``confirmed_seq`` and ``deleted_seq`` are the seqs of the latest ``PlaceConfirmed`` and
     ``PlaceDeleted`` the explorer published before this command (-1: none), so that a receiver knows
     which events it must have heard: zenoh keeps the order of one key's messages, not across keys.
+    ``relocalisations`` counts the explorer's requests to the place recognizer to relocalise, up to
+    this command (its legs keep failing from where the belief puts the robot): the recognizer acts on
+    a rise of the count before its next scan.
     """
 
     v_mps: float
@@ -186,6 +189,7 @@ class VelocityCommand(Message, frozen=True, kw_only=True):
     tick: int
     confirmed_seq: int = -1
     deleted_seq: int = -1
+    relocalisations: int = 0
 
 
 class ExplorationStatus(Message, frozen=True, kw_only=True):

@@ -138,7 +138,7 @@ class ExplorerShell:
         self.output: ExplorerOutput | None = None
         self.counts = {"ticks": 0, "repeats": 0, "skipped_poses": 0, "scans": 0, "fixes": 0,
                        "localization_timeouts": 0, "map_updates": 0, "events": 0, "complete": 0,
-                       "late_scans": 0, "scan_timeouts": 0}
+                       "late_scans": 0, "scan_timeouts": 0, "relocalisations": 0}
 
     def _tick_of(self, stamp: float) -> int:
         return round(stamp / self.params.dt_s)
@@ -268,8 +268,13 @@ class ExplorerShell:
         self._pose = None
         self.counts["scans"] += scan is not None
         self.counts["fixes"] += fix is not None
+        requests = self.core.relocalisations
         out = self.core.step(pose.stamp, pose.compass, scan, fix)
         self.output = out
+        if self.core.relocalisations > requests:
+            self.counts["relocalisations"] = self.core.relocalisations
+            log.info("%s: legs keep failing from place %d, where the belief puts the robot: asking the "
+                     "recognizer to relocalise (request %d)", SERVICE, self.core.last_place, self.core.relocalisations)
         events = []
         for ev in out.events:
             msg_type, name = _EVENT_TYPES[type(ev)]
@@ -306,7 +311,8 @@ class ExplorerShell:
         """The command of ``tick``, naming the latest place events published before it."""
         return VelocityCommand(stamp=stamp, seq=self._next_seq("cmd_velocity"), v_mps=v, omega_radps=w, tick=tick,
                                confirmed_seq=self._seq.get("places_confirmed", 0) - 1,
-                               deleted_seq=self._seq.get("places_deleted", 0) - 1)
+                               deleted_seq=self._seq.get("places_deleted", 0) - 1,
+                               relocalisations=self.core.relocalisations)
 
 
 # The map events, logged before they go out and published again after a restart. A repeat is harmless:

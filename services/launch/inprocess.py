@@ -118,6 +118,7 @@ class RunRecord:
     links: list[LinkRecord] = field(default_factory=list)
     predicted_left: int = 0  # predicted places at the end
     collisions: int = 0
+    relocalisations: int = 0  # the explorer's requests to the recognizer to relocalise
     timings_s: dict[str, float] = field(default_factory=dict)  # wall time per component
     relaxed: dict[int, tuple[float, float]] = field(default_factory=dict)  # final relaxed coordinates
     noise: tuple[float, float, float] | None = None  # final S_dd, S_aa, S_da of the relaxer
@@ -153,6 +154,7 @@ class InProcessRun:
         self._prev_dr: DeadReckonedPose | None = None
         self._prev_scan: SonarScan | None = None
         self._prev_fix: PlaceFix | None = None
+        self._relocalised = 0  # the explorer's relocalisation requests the recognizer has acted on
         self._state, frame = sim_core.start(self.model, self.rng)
         self._command = self._handle(frame)
 
@@ -180,6 +182,7 @@ class InProcessRun:
         r = self.record
         r.timings_s = dict(self._timings)
         r.collisions = self._state.collisions
+        r.relocalisations = self.explorer.relocalisations
         r.predicted_left = sum(1 for q in self.explorer.places.values() if not q.confirmed)
         if self.online is not None:
             r.relaxed = self.online.coordinates()
@@ -203,6 +206,9 @@ class InProcessRun:
                     self.recognizer.remove_place(ev.place_id)
         fix = None
         if frame.sonar is not None:
+            if self.explorer.relocalisations > self._relocalised:  # asked for by tick k - 1's step
+                self._relocalised = self.explorer.relocalisations
+                self.recognizer.relocalise()
             out = self.recognizer.step(dr, frame.sonar)
             self._links(out, frame.tick)
             loc = out.localization

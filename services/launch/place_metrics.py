@@ -213,6 +213,7 @@ def measure(rec: RunRecord, world: World, params: MetricParams = MetricParams())
         "world": rec.world, "seed": rec.seed, "sim_time_s": rec.sim_time_s, "wall_time_s": rec.wall_time_s,
         "complete": rec.complete, "predicted_left": rec.predicted_left, "places": len(rec.places),
         "deleted_confirmed": len(rec.deleted_confirmed), "scans": len(rec.scans), "collisions": rec.collisions,
+        "relocalisations": rec.relocalisations,
     }
     out.update(recognition(rec, params))
     out.update(link_errors(rec))

@@ -133,6 +133,37 @@ def predict(belief: Belief, displacement_xy: np.ndarray, *, transition_std_m: fl
                    none_prob=float(prior[P] / total), none_xy=none_xy, none_var_m2=none_var)
 
 
+def spread(belief: Belief, fraction: float, *, std_m: float, unknown_offset_var_m2: float) -> Belief:
+    """Move ``fraction`` of the mass to the places near the robot and to "none" (a relocalisation).
+
+    Notes
+    -----
+    As the relocalisation part of :func:`predict`, at once: "none" and each place ``j`` receive in
+    proportion to ``g_j = exp(-|c_j - m|^2 / (2 std_m^2))`` (``g = 1`` for "none"), ``m`` the robot's
+    expected position; the mass arrives without a position, at the centre with
+    ``unknown_offset_var_m2``, and each place's offset is the moment-matched mixture of what it kept
+    and what arrived.
+    """
+    n = belief.ids.size
+    if n == 0 or fraction <= 0.0:
+        return belief
+    keep = 1.0 - fraction
+    pos = belief.centres + belief.offsets
+    total = belief.probs.sum() + belief.none_prob
+    expected = (belief.probs @ pos + belief.none_prob * belief.none_xy) / max(total, 1e-300)
+    g = np.append(np.exp(-((belief.centres - expected) ** 2).sum(axis=1) / (2.0 * std_m**2)), 1.0)
+    arriving = fraction * total * g / g.sum()
+    kept = keep * belief.probs
+    probs = kept + arriving[:n]
+    some = probs[:, None] > 0.0
+    mean = np.divide(kept[:, None] * belief.offsets, probs[:, None], out=np.zeros((n, 2)), where=some)
+    second = np.divide(kept[:, None] * (belief.offset_vars + belief.offsets**2)
+                       + arriving[:n, None] * unknown_offset_var_m2, probs[:, None],
+                       out=np.full((n, 2), unknown_offset_var_m2), where=some)
+    return replace(belief, probs=probs, offsets=mean, offset_vars=np.maximum(second - mean**2, 0.0),
+                   none_prob=float(keep * belief.none_prob + arriving[n]))
+
+
 def correct(belief: Belief, scores: np.ndarray, observed_offsets: np.ndarray,
             observed_vars: np.ndarray, *, match_sharpness: float, new_place_match: float) -> Belief:
     """Bayes update with the match scores, and the offset filter (Eqs. 22-23).

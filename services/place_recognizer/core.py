@@ -57,6 +57,11 @@ class PlaceRecognizerParams:
     link_map_gate_m: float = 0.75  # a traversal further than this from the centres' displacement is rejected
     arrival_gate_m: float = 1.0  # an arrival further than this from where dead reckoning puts the robot
     arrival_gate_per_m: float = 0.05  # ... plus this per metre travelled since the last place is a jump
+    relocalise_fraction: float = 0.5  # asked to relocalise (the explorer's legs keep failing), this fraction
+    # of the belief's mass goes to the places near the robot ...
+    relocalise_request_std_m: float = 2.0  # ... in proportion to a Gaussian of this width about its
+    # expected position, and the arrival gate is off for ...
+    relocalise_scans: int = 25  # ... this many scans, or until the belief settles at another place (relocalise)
     match_window_sd: float = 3.0  # a place is matched at shifts within this many standard deviations of
     # its predicted offset (0: at every shift)
     deviation: DeviationParams = field(default_factory=DeviationParams)  # the compass's deviation per place
@@ -230,6 +235,9 @@ class RecognizerState(msgspec.Struct, frozen=True):
     signature_ids: list[int]  # the places whose signatures go with this state
     rejected_arrivals: int = 0
     deviation: DeviationState | None = None
+    relocalisations: int = 0
+    suspect: int = -1  # see PlaceRecognizer.relocalise
+    unanchored: int = 0
 
 
 class PlaceRecognizer:
@@ -295,6 +303,9 @@ class PlaceRecognizer:
         self._links: dict[frozenset[int], LinkAccumulator] = {}
         self.rejected_traversals = 0  # traversals refused by the fusing gate
         self.rejected_arrivals = 0  # recognitions refused as jumps (arrival gate)
+        self.relocalisations = 0  # requests to relocalise taken (see relocalise)
+        self._suspect = NO_PLACE  # after relocalise: the place the robot was believed at ...
+        self._unanchored = 0  # ... and the scans left without the arrival gate
         self._restored_at: tuple[int, tuple[float, float], tuple[float, float]] | None = None  # see restore
         self.deviations = DeviationMap(self.params.deviation)
 
@@ -339,6 +350,26 @@ class PlaceRecognizer:
                 "rejected_traversals": float(self.rejected_traversals),
                 "rejected_arrivals": float(self.rejected_arrivals)}
         return RecognizerOutput(localization=self.localization(), links=links, diagnostics=diag)
+
+    def relocalise(self) -> None:
+        """The explorer's legs keep failing from where the belief puts the robot: the belief may be wrong.
+
+        ``relocalise_fraction`` of its mass goes to the places within about ``relocalise_request_std_m``
+        of the robot (:func:`services.place_recognizer.belief.spread`), which the next scans then
+        match. For the next ``relocalise_scans`` scans, or until the belief settles at another place,
+        the arrival gate is off (anchored at a place the robot is not at, it refuses the right ones),
+        and no link is measured from or to the place the robot was believed at: its offsets there are
+        suspect.
+        """
+        p = self.params
+        self.belief = _belief.spread(self.belief, p.relocalise_fraction, std_m=p.relocalise_request_std_m,
+                                     unknown_offset_var_m2=p.unknown_offset_var_m2)
+        mark = self._inside if self._inside is not None else self._departure
+        self._suspect = self.current if self.current != NO_PLACE else (NO_PLACE if mark is None else mark.place_id)
+        self._unanchored = p.relocalise_scans
+        if self._pending is not None and self._suspect in (self._pending.to_id, self._pending.departure.place_id):
+            self._pending = None
+        self.relocalisations += 1
 
     def add_place(self, place_id: int, x_m: float, y_m: float, dr: DeadReckonedPose) -> RecognizerOutput:
         """A place confirmed by the explorer at the robot's position; stores its signature.
@@ -469,7 +500,8 @@ class PlaceRecognizer:
             pending=None if self._pending is None else _Pending(**vars(self._pending)),
             links=list(self._links.values()),
             rejected_traversals=self.rejected_traversals, signature_ids=list(self._signatures),
-            rejected_arrivals=self.rejected_arrivals, deviation=self.deviations.snapshot())
+            rejected_arrivals=self.rejected_arrivals, deviation=self.deviations.snapshot(),
+            relocalisations=self.relocalisations, suspect=self._suspect, unanchored=self._unanchored)
 
     def signatures(self) -> dict[int, PlaceSignature]:
         """Each place's signature; a signature's ``logodds`` is a new array whenever it has grown."""
@@ -489,6 +521,8 @@ class PlaceRecognizer:
         self._links = {frozenset((a.from_id, a.to_id)): a for a in state.links}
         self.rejected_traversals = state.rejected_traversals
         self.rejected_arrivals = state.rejected_arrivals
+        self.relocalisations = state.relocalisations
+        self._suspect, self._unanchored = state.suspect, state.unanchored
         self.deviations = DeviationMap(self.params.deviation)
         if state.deviation is not None:
             self.deviations.restore_snapshot(state.deviation)
@@ -658,7 +692,13 @@ class PlaceRecognizer:
 
     def _track(self, dr: DeadReckonedPose) -> tuple[LinkEstimate, ...]:
         new = self._at_place()
-        if new not in (NO_PLACE, self.current) and not self._plausible_arrival(new, dr):
+        if self._unanchored > 0:  # relocalising: no gate; settled elsewhere, the gate is back from there
+            self._unanchored -= 1
+            if new not in (NO_PLACE, self._suspect):
+                self._unanchored = 0  # (_arrive_or_leave drops the link from the suspect place)
+            elif self._unanchored == 0:
+                self._suspect = NO_PLACE  # the belief stayed: its place is trusted again
+        elif new not in (NO_PLACE, self.current) and not self._plausible_arrival(new, dr):
             self.rejected_arrivals += 1
             new = NO_PLACE
         return self._arrive_or_leave(new, dr, settled_now=False)
@@ -689,6 +729,11 @@ class PlaceRecognizer:
                 if self._first_visit == self.current:
                     self._first_visit = NO_PLACE
             self._pending = None
+            if self._suspect != NO_PLACE and self._departure is not None and self._suspect in (
+                    self._departure.place_id, new):
+                self._departure = None  # relocalising (relocalise): no link from or to the suspect place
+            if new not in (NO_PLACE, self._suspect):
+                self._suspect = NO_PLACE
             if new != NO_PLACE and self._departure is not None and self._departure.place_id != new:
                 self._pending = _Pending(self._departure, new, (dr.compass.x_m, dr.compass.y_m), dr.steps,
                                          dr.path_length_m, 0)

@@ -86,6 +86,7 @@ class RecognizerCheckpoint(msgspec.Struct, frozen=True):
     latest_stamp: float
     counts: dict[str, int]
     event_seqs: tuple[int, int] = (-1, -1)  # the highest seqs of places confirmed and deleted applied
+    relocalisations: int = 0  # the explorer's count of relocalisation requests, as last acted on
 
 
 class RecognizerFiles:
@@ -188,11 +189,13 @@ class RecognizerShell:
         self._event_heard = [-1, -1]  # the highest seqs of places confirmed and deleted heard
         self._event_due = [-1, -1]  # ... named by a velocity command
         self._event_applied = [-1, -1]  # ... applied
+        self._relocalise: list[tuple[int, int]] = []  # (tick, count) of each rise of the explorer's requests
+        self._relocalised = 0  # the count acted on
         self._belief_seq = 0
         self._link_seq = 0
         self.counts = {"scans": 0, "localised": 0, "links": 0, "places": 0, "deleted": 0, "map_updates": 0,
                        "dropped_scans": 0, "unpaired_scans": 0, "late_events": 0, "repeated_scans": 0,
-                       "order_timeouts": 0, "repeated_events": 0, "resent_links": 0}
+                       "order_timeouts": 0, "repeated_events": 0, "resent_links": 0, "relocalisations": 0}
         self._last_scan_seq = -1
         self._last_belief: LocalizationBelief | None = None  # published for the scan of _last_scan_seq
         self.latest_stamp = -math.inf
@@ -222,7 +225,8 @@ class RecognizerShell:
             core=self.core.snapshot(), poses=list(self._poses)[-n:], applied=sorted(self._applied),
             cmd_tick=self._cmd_tick, sensor_tick=self._sensor_tick, done_tick=self._done_tick,
             belief_seq=self._belief_seq, link_seq=self._link_seq, last_scan_seq=self._last_scan_seq,
-            latest_stamp=self.latest_stamp, counts=dict(self.counts), event_seqs=tuple(self._event_applied))
+            latest_stamp=self.latest_stamp, counts=dict(self.counts), event_seqs=tuple(self._event_applied),
+            relocalisations=self._relocalised)
 
     def resume(self, ckpt: RecognizerCheckpoint, signatures: dict[int, PlaceSignature]) -> None:
         """Go on from a checkpoint: its places, signatures, belief and links in progress."""
@@ -239,6 +243,7 @@ class RecognizerShell:
         self._scan_heard = self._scan_due = self._last_scan_seq
         self._event_applied = list(ckpt.event_seqs)
         self._event_heard, self._event_due = list(ckpt.event_seqs), list(ckpt.event_seqs)
+        self._relocalised, self._relocalise = ckpt.relocalisations, []
 
     def _commit(self, links: list[LinkMeasured]) -> None:
         """Before anything of an applied input is published: the links into the log, then the state."""
@@ -282,6 +287,8 @@ class RecognizerShell:
     def on_command(self, msg: VelocityCommand) -> None:
         self._cmd_tick = max(self._cmd_tick, msg.tick)
         self._event_due = [max(self._event_due[0], msg.confirmed_seq), max(self._event_due[1], msg.deleted_seq)]
+        if msg.relocalisations > max(self._relocalised, self._relocalise[-1][1] if self._relocalise else 0):
+            self._relocalise.append((msg.tick, msg.relocalisations))
         self.drain()
 
     def on_explorer_event(self, msg: PlaceConfirmed | PlaceDeleted) -> None:
@@ -340,6 +347,7 @@ class RecognizerShell:
                     self._give_up_waiting()
                     self._scans.pop(0)
                     self._done_tick = max(self._done_tick, t)
+                    self._relocalise_before(t)
                     self._step(scan)
                     continue
             return
@@ -351,6 +359,20 @@ class RecognizerShell:
                         "without them", SERVICE, self._scan_due, self._event_due, self.params.order_timeout_s)
         self._scan_heard = max(self._scan_heard, self._scan_due)
         self._event_heard = [max(h, d) for h, d in zip(self._event_heard, self._event_due)]
+
+    def _relocalise_before(self, tick: int) -> None:
+        """Act on the explorer's requests to relocalise named by the commands of ticks before ``tick``
+        (in process: after the explorer's step of tick ``j - 1``, before the scan of tick ``j``)."""
+        due = [n for t, n in self._relocalise if t < tick]
+        if not due:
+            return
+        self._relocalise = [(t, n) for t, n in self._relocalise if t >= tick]
+        if due[-1] > self._relocalised:
+            self._relocalised = due[-1]
+            self.core.relocalise()
+            self.counts["relocalisations"] += 1
+            log.info("%s: relocalising at the explorer's request %d (tick %d): the belief's mass spread near the "
+                     "robot, no link from the place it was at", SERVICE, due[-1], tick)
 
     # -- processing -----------------------------------------------------------------------------
     def _pose_at(self, stamp: float) -> DeadReckonedPose | None:

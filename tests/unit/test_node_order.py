@@ -200,3 +200,33 @@ def test_recognizer_stops_waiting_for_a_place_event_lost_for_good():
     shell.on_command(command(p1, 1, confirmed_seq=0))
     feed_tick(shell, f2, p2)  # no second wait for the same event
     assert len(beliefs) == 3 and shell.counts["order_timeouts"] == 1
+
+
+def test_recognizer_relocalises_after_the_scan_of_the_tick_whose_command_asked_and_once_per_request():
+    clock = Clock()
+    (f0, p0), (f1, p1), (f2, p2), (f3, p3) = frames(4)
+    shell, beliefs = recognizer(clock)
+    feed_tick(shell, f0, p0)
+    shell.on_command(command(p0, 0, confirmed_seq=-1))
+    # the explorer answers tick 1 with a request before the recognizer has the scan of tick 1
+    shell.on_command(VelocityCommand(stamp=p1.stamp, seq=1, v_mps=0.3, omega_radps=0.0, tick=1, relocalisations=1))
+    feed_tick(shell, f1, p1)
+    assert len(beliefs) == 2 and shell.counts["relocalisations"] == 0 == shell.core.relocalisations
+    feed_tick(shell, f2, p2)
+    assert len(beliefs) == 3 and shell.counts["relocalisations"] == 1 == shell.core.relocalisations
+    assert shell.checkpoint().relocalisations == 1
+    shell.on_command(VelocityCommand(stamp=p2.stamp, seq=2, v_mps=0.3, omega_radps=0.0, tick=2, relocalisations=1))
+    feed_tick(shell, f3, p3)  # the same count again: nothing new
+    assert len(beliefs) == 4 and shell.core.relocalisations == 1
+
+
+def test_explorer_command_carries_its_count_of_relocalisation_requests():
+    clock = Clock()
+    shell, sent = explorer(clock)
+    (f0, p0), (f1, p1) = frames(2)
+    shell.on_dr_pose(p0)
+    shell.core.relocalisations = 2  # as _failed leaves it after two held failures
+    shell.on_odometry(f1.odometry)
+    shell.on_sonar(f0.sonar)
+    shell.on_dr_pose(p1)
+    assert [c.relocalisations for c in commands(sent)] == [0, 2]

@@ -223,11 +223,76 @@ def test_a_recognition_far_from_where_dead_reckoning_puts_the_robot_is_a_jump():
             rec.step(d.dr(1.5 + 0.2 * k, 1.5), scan_at(1.5 + 0.1 * k, 1.5, 0.0, WALLS)[0])
         at = []
         for k in range(1, 11):  # back at place 0 for real, dead reckoning 11.5 m east
-            out = rec.step(d.dr(11.5 + 0.01 * k, 1.5), scan_at(1.5, 1.5, 0.0, WALLS)[0])
+            out = rec.step(d.dr(10.6 + 0.01 * k, 1.5), scan_at(1.5, 1.5, 0.0, WALLS)[0])
             at.append(out.localization.place_id)
         assert (0 in at) is expect_at_0, at
         assert int(np.argmax(rec.belief.probs)) == 0  # the belief itself does go there
         assert (rec.rejected_arrivals > 0) is not expect_at_0
+
+
+def test_relocalising_lifts_the_gate_anchored_at_a_wrong_place_and_measures_no_link_from_it():
+    """Places 0 and 1 a metre apart; the robot goes back to place 0 while dead reckoning says it drove
+    8 m east of place 1. The belief takes place 0, the arrival gate (anchored at place 1) refuses it
+    scan after scan. Asked to relocalise, the recognizer puts the robot at place 0 without measuring
+    the link 1 -> 0 from that departure (the map gate, which would, is off here); from place 0 the
+    gate and the links are back: the next traversal 0 -> 1 is measured and fused."""
+    import math
+
+    def run(relocalise: bool):
+        rec = PlaceRecognizer(PlaceRecognizerParams(relocalise_std_m=math.inf, uniform_transition=0.05,
+                                                    arrival_gate_m=2.5, link_map_gate_m=math.inf))
+        d = _Drive(rec)
+        dr = d.dr(1.5, 1.5)
+        rec.step(dr, scan_at(1.5, 1.5, 0.0, WALLS)[0])
+        rec.add_place(0, 1.5, 1.5, dr)
+        links = []
+        for k in range(1, 11):
+            links += rec.step(d.dr(1.5 + 0.1 * k, 1.5), scan_at(1.5 + 0.1 * k, 1.5, 0.0, WALLS)[0]).links
+        links += rec.add_place(1, 2.5, 1.5, d.dr(2.5, 1.5)).links
+        for k in range(1, 41):  # truly back west to place 0; dead reckoning: 8 m further east
+            x = max(2.5 - 0.1 * k, 1.5)
+            links += rec.step(d.dr(2.5 + 0.2 * k, 1.5), scan_at(x, 1.5, 0.0, WALLS)[0]).links
+        for k in range(1, 6):
+            links += rec.step(d.dr(10.5 + 0.01 * k, 1.5), scan_at(1.5, 1.5, 0.0, WALLS)[0]).links
+        rejected = rec.rejected_arrivals
+        assert rejected > 0 and rec.current == NO_PLACE and int(np.argmax(rec.belief.probs)) == 0
+        if relocalise:
+            rec.relocalise()
+        at = []
+        for k in range(1, 16):  # at place 0
+            out = rec.step(d.dr(10.6 + 0.01 * k, 1.5), scan_at(1.5, 1.5, 0.0, WALLS)[0])
+            links += out.links
+            at.append(out.localization.place_id)
+        for k in range(1, 21):  # on to place 1, dead reckoning right
+            out = rec.step(d.dr(10.75 + 0.1 * min(k, 10), 1.5), scan_at(1.5 + 0.1 * min(k, 10), 1.5, 0.0, WALLS)[0])
+            links += out.links
+            at.append(out.localization.place_id)
+        return rec, rejected, at, [(lk.from_id, lk.to_id, lk.traversals) for lk in links]
+
+    rec, rejected, at, links = run(relocalise=False)
+    assert set(at) == {NO_PLACE} and rec.rejected_arrivals > rejected and links == [(0, 1, 1)]
+    rec, rejected, at, links = run(relocalise=True)
+    assert rec.relocalisations == 1 and rec.rejected_arrivals == rejected
+    assert at[:15] == [0] * 15 and at[-5:] == [1] * 5
+    assert links == [(0, 1, 1), (0, 1, 2)]  # nothing from place 1 to 0; the second traversal fused
+
+
+def test_a_spread_belief_keeps_its_mass_and_favours_the_places_near_the_robot():
+    from services.place_recognizer import belief as bf
+
+    b = bf.Belief(ids=np.array([0, 1, 2]), centres=np.array([[0.0, 0.0], [1.0, 0.0], [5.0, 0.0]]),
+                  probs=np.array([0.9, 0.05, 0.0]), offsets=np.array([[0.2, 0.0], [0.0, 0.0], [0.0, 0.0]]),
+                  offset_vars=np.full((3, 2), 0.01), none_prob=0.05, none_xy=np.array([0.5, 0.0]), none_var_m2=0.1)
+    s = bf.spread(b, 0.5, std_m=2.0, unknown_offset_var_m2=0.25)
+    assert s.probs.sum() + s.none_prob == pytest.approx(1.0)
+    assert s.probs[0] > s.probs[1] > s.probs[2] > 0.0  # the robot is expected about 0.2 m from place 0
+    m = 0.9 * 0.2 + 0.05 * 1.0 + 0.05 * 0.5  # the expected position along x: places and "none"
+    g = np.append(np.exp(-(np.array([0.0, 1.0, 5.0]) - m) ** 2 / (2 * 2.0**2)), 1.0)
+    assert s.probs[2] == pytest.approx(0.5 * g[2] / g.sum(), rel=1e-6)
+    # place 0's offset: the kept half at 0.2 m, the arriving mass at the centre, mixed by their weights
+    kept, arriving = 0.45, 0.5 * g[0] / g.sum()
+    assert s.offsets[0, 0] == pytest.approx(kept * 0.2 / (kept + arriving))
+    assert s.offset_vars[2, 0] == pytest.approx(0.25) and bf.spread(b, 0.0, std_m=2.0, unknown_offset_var_m2=0.25) is b
 
 
 def test_the_first_new_place_after_a_restore_is_linked_from_the_place_the_robot_was_saved_at(drive):
