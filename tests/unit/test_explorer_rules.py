@@ -200,16 +200,22 @@ def test_traversal_raises_and_failure_lowers_confidence_then_deletes_link_and_un
     assert not out.status.complete and ex.target == 4 and ex.relocalisations == 1
 
 
-def test_a_link_that_would_cut_the_robot_off_from_every_predicted_place_is_held_and_asks_to_relocalise():
-    """The same failing leg 1 -> 0 with nothing predicted beyond place 2: deleting the link would leave
-    no predicted place within reach and end the exploration (a lost robot's legs fail like that). It is
-    kept through max_held_failures failures below confidence_min, each a relocalisation request."""
-    params = ExplorerParams(leg_timeout_base_s=10.0, leg_timeout_per_m_s=0.0, max_held_failures=3)
+def _on_the_leg_towards_the_only_predicted_place(params: ExplorerParams) -> Explorer:
+    """The chain 0-1-2 with place 3 predicted beyond 0 and nothing else: the robot, at place 1, on the leg 1 -> 0."""
     ex = _chain_explorer(params)
     ex.places[3] = Place(3, -1.0, 0.0, False, 0)
     ex.links[(0, 3)] = Link(0, 3, PREDICTED, 0.5)
     ex.step(0.0, _pose(2.0, 0.0))
     ex.step(1.0, _pose(1.05, 0.0), fix=PlaceFix(1, 0.05, 0.0, 1.0))
+    return ex
+
+
+def test_a_link_that_would_cut_the_robot_off_from_every_predicted_place_is_held_and_asks_to_relocalise():
+    """The same failing leg 1 -> 0 with nothing predicted beyond place 2: deleting the link would leave
+    no predicted place within reach and end the exploration (a lost robot's legs fail like that). It is
+    kept through max_held_failures failures below confidence_min, each a relocalisation request."""
+    params = ExplorerParams(leg_timeout_base_s=10.0, leg_timeout_per_m_s=0.0, max_held_failures=3)
+    ex = _on_the_leg_towards_the_only_predicted_place(params)
     assert ex.leg == (1, 0)
     t, confidences, requests = 1.0, [], []
     for _ in range(4):  # 0.25, then below 0.2: held three times
@@ -232,11 +238,7 @@ def test_a_link_that_would_cut_the_robot_off_from_every_predicted_place_is_held_
 
 def test_a_held_link_travelled_after_all_starts_its_count_afresh():
     params = ExplorerParams(leg_timeout_base_s=10.0, leg_timeout_per_m_s=0.0, max_held_failures=3)
-    ex = _chain_explorer(params)
-    ex.places[3] = Place(3, -1.0, 0.0, False, 0)
-    ex.links[(0, 3)] = Link(0, 3, PREDICTED, 0.5)
-    ex.step(0.0, _pose(2.0, 0.0))
-    ex.step(1.0, _pose(1.05, 0.0), fix=PlaceFix(1, 0.05, 0.0, 1.0))
+    ex = _on_the_leg_towards_the_only_predicted_place(params)
     ex.step(11.5, _pose(1.05, 0.0))
     ex.step(22.0, _pose(1.05, 0.0))
     assert ex._held == {(0, 1): 1} and ex.relocalisations == 1
