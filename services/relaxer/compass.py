@@ -52,8 +52,8 @@ class CompassParams(msgspec.Struct, frozen=True):
     max_correlation: float = 0.99  # |S_da| is kept below this fraction of sqrt(S_dd S_aa)
     auto_min_step_m: float = 1e-3  # the auto strategy acts only on sweeps moving a place more than this (m)
     auto_target_step_m: float = 1e-6  # the sweep step (m) at which the auto strategy deems a map settled
-    exact_cost_sweeps: float = 75.0  # cost of one exact solve in sweeps, at 1000 places (measured)
-    exact_cost_growth: float = 0.15  # that cost grows as (places / 1000) ** this (measured)
+    exact_cost_sweeps: float = 64.0  # cost of one exact solve in sweeps, at 1000 places (measured)
+    exact_cost_growth: float = 0.07  # that cost grows as (places / 1000) ** this (measured)
     max_exact_noise_rounds: int = 50  # exact solves alternated with noise re-estimation, at most
     noise_refresh_rel: float = 1e-3  # adopt a new noise estimate once it differs by more than this (relative);
     # the sweep is rebuilt when the noise's shape (up to scale) moved by more than this
@@ -198,23 +198,59 @@ def normal_equations(graph: MapGraph, noise: CompassNoise) -> tuple[sp.csr_matri
     Each link adds ``W`` to the diagonal blocks of both places and ``-W`` off the diagonal; the
     right-hand side gets ``+W D`` at its second place and ``-W D`` at its first (gradient of Eq. 7).
     """
-    n, k = graph.n_places, graph.n_links
-    w = link_information(graph, noise)
+    n = graph.n_places
+    upper, g, _ = _reduced_system(graph, link_information(graph, noise), np.zeros(n, dtype=bool), np.zeros(2 * n))
+    return sp.csr_matrix(upper + sp.triu(upper, 1).T), g
+
+
+def _reduced_system(graph: MapGraph, w: np.ndarray, fixed: np.ndarray,
+                    x: np.ndarray) -> tuple[sp.csc_matrix, np.ndarray, np.ndarray]:
+    """The normal equations over the free places only: ``(upper triangle of H_ff, rhs, free variables)``.
+
+    Notes
+    -----
+    Assembled straight from the links (the same sums as :func:`normal_equations`, rows and columns of
+    the fixed places left out, their coordinates moved to the right-hand side), and only the upper
+    triangle, which is all a symmetric factorisation reads: building the full ``H`` and slicing it
+    cost as much as the factorisation itself at a thousand places.
+    """
+    n = graph.n_places
+    index = np.full(n, -1, dtype=np.int64)
+    free_places = np.flatnonzero(~fixed)
+    index[free_places] = np.arange(len(free_places))
     i, j = graph.src, graph.dst
-    wfull = np.stack([w[:, 0], w[:, 1], w[:, 1], w[:, 2]], axis=1)  # row-major 2x2
-    r = np.array([0, 0, 1, 1])
-    c = np.array([0, 1, 0, 1])
-    rows = np.concatenate([2 * i[:, None] + r, 2 * j[:, None] + r, 2 * i[:, None] + r, 2 * j[:, None] + r])
-    cols = np.concatenate([2 * i[:, None] + c, 2 * j[:, None] + c, 2 * j[:, None] + c, 2 * i[:, None] + c])
-    vals = np.concatenate([wfull, wfull, -wfull, -wfull])
-    h = sp.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(2 * n, 2 * n))
-    wd = np.stack([w[:, 0] * graph.disp[:, 0] + w[:, 1] * graph.disp[:, 1],
-                   w[:, 1] * graph.disp[:, 0] + w[:, 2] * graph.disp[:, 1]], axis=1)
-    g = np.zeros((n, 2))
-    np.add.at(g, j, wd)
-    np.add.at(g, i, -wd)
-    del k
-    return h, g.ravel()
+    fi, fj = index[i], index[j]
+    wxx, wxy, wyy = w[:, 0], w[:, 1], w[:, 2]
+    rows, cols, vals = [], [], []
+    for f in (fi, fj):  # diagonal blocks: (x, x), (x, y), (y, y) of each free end
+        m = f >= 0
+        b = 2 * f[m]
+        rows += [b, b, b + 1]
+        cols += [b, b + 1, b + 1]
+        vals += [wxx[m], wxy[m], wyy[m]]
+    m = (fi >= 0) & (fj >= 0)  # off-diagonal blocks -W, in the upper triangle
+    lo, hi = 2 * np.minimum(fi[m], fj[m]), 2 * np.maximum(fi[m], fj[m])
+    rows += [lo, lo, lo + 1, lo + 1]
+    cols += [hi, hi + 1, hi, hi + 1]
+    vals += [-wxx[m], -wxy[m], -wxy[m], -wyy[m]]
+    size = 2 * len(free_places)
+    h = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size))
+    # right-hand side: +W D at the second place, -W D at the first; a fixed neighbour adds +W x_fixed
+    xy = x.reshape(-1, 2)
+    dx, dy = graph.disp[:, 0], graph.disp[:, 1]
+    at = np.concatenate([j, i])
+    gx = np.concatenate([wxx * dx + wxy * dy, -(wxx * dx + wxy * dy)])
+    gy = np.concatenate([wxy * dx + wyy * dy, -(wxy * dx + wyy * dy)])
+    for a, b in ((i, j), (j, i)):  # a free, b fixed
+        m = (index[a] >= 0) & (index[b] < 0)
+        if m.any():
+            bx, by = xy[b[m], 0], xy[b[m], 1]
+            at = np.concatenate([at, a[m]])
+            gx = np.concatenate([gx, wxx[m] * bx + wxy[m] * by])
+            gy = np.concatenate([gy, wxy[m] * bx + wyy[m] * by])
+    g = np.stack([np.bincount(at, gx, minlength=n), np.bincount(at, gy, minlength=n)], axis=1)
+    free = np.repeat(~fixed, 2)
+    return h, g[free_places].ravel(), free
 
 
 def _exact_xy(graph: MapGraph, xy: np.ndarray, noise: CompassNoise, pinned: int,
@@ -224,19 +260,15 @@ def _exact_xy(graph: MapGraph, xy: np.ndarray, noise: CompassNoise, pinned: int,
     A fluctuation ``y = H^-1 J^T W^(1/2) xi`` has covariance ``H^-1``: the posterior covariance of
     the coordinates when the likelihood is ``exp(-E/2)``.
     """
-    h, g = normal_equations(graph, noise)
-    fixed = np.repeat(_gauge(graph, pinned), 2)
-    free = ~fixed
     x = np.asarray(xy, dtype=float).reshape(-1).copy()
     y = None
-    if free.any():
-        h = h.tocsc()
-        hff = h[free][:, free]
-        rhs = g[free] - h[free][:, fixed] @ x[fixed]
+    fixed = _gauge(graph, pinned)
+    if not fixed.all():
+        w = link_information(graph, noise)
+        hff, rhs, free = _reduced_system(graph, w, fixed, x)
         if xi is None:
-            x[free] = spd_solve(hff, rhs)
+            x[free] = spd_solve(hff, rhs, upper=True)
         else:
-            w = link_information(graph, noise)
             l11 = np.sqrt(w[:, 0])
             l21 = w[:, 1] / l11
             l22 = np.sqrt(np.maximum(w[:, 2] - l21 * l21, 0.0))
@@ -249,7 +281,7 @@ def _exact_xy(graph: MapGraph, xy: np.ndarray, noise: CompassNoise, pinned: int,
                 np.add.at(f[s], graph.dst, lxy[s])
                 np.add.at(f[s], graph.src, -lxy[s])
             b = np.concatenate([rhs[:, None], f.reshape(m, -1)[:, free].T], axis=1)
-            sol = spd_solve(hff, b)
+            sol = spd_solve(hff, b, upper=True)
             x[free] = sol[:, 0]
             y = np.zeros((m, 2 * graph.n_places))
             y[:, free] = sol[:, 1:].T

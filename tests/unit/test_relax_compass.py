@@ -138,6 +138,24 @@ def test_sweeps_converge_to_the_exact_minimum(problem):
 
 
 @settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(compass_problems(max_places=10))
+def test_exact_solve_without_qdldl_reaches_the_same_minimum(problem):
+    # SuperLU in symmetric mode, given the upper triangle the qdldl path factorises
+    import services.relaxer.sparse as sparse
+
+    n, links, noise, xy0, pinned = problem
+    g = _build(n, links)
+    ref = _dense_minimum(n, links, noise, xy0, pinned)
+    saved = sparse._qdldl
+    sparse._qdldl = None
+    try:
+        ex = solve_exact(g, xy0, noise=noise, pinned=pinned, params=FIXED)
+    finally:
+        sparse._qdldl = saved
+    np.testing.assert_allclose(ex.xy, ref, atol=1e-8)
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(compass_problems(max_places=8), st.floats(-50, 50), st.floats(-50, 50))
 def test_pinned_place_never_moves_and_translation_does_not_change_the_result(problem, tx, ty):
     n, links, noise, xy0, pinned = problem
