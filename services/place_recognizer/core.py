@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -47,6 +48,10 @@ class PlaceRecognizerParams:
     # sonar looked from more than on the place, and would drown the walls
     match_axes: str = "min"  # a place's score from its x and y scores: "min" (both must fit) or "mean"
     match_sharpness: float = 25.0  # beta: likelihood exp(beta (M - 1)) of a match score M
+    repeat_scan_m: float = 0.05  # a scan taken within this of the last one's position ...
+    repeat_scan_rad: float = 0.17  # ... and heading sees nearly what it saw (a robot standing still) ...
+    repeat_scan_weight: float = 0.2  # ... and counts as this fraction of an observation (tempered likelihood):
+    # taken as independent, 15 s of a stalled robot beside a look-alike moved the belief 7 m
     new_place_match: float = 0.7  # virtual match score of the "no known place" hypothesis
     confirmed_probability: float = 0.95  # belief in a place at the moment it is confirmed
     settle_observations: int = 5  # observations at a revisited place before its link is measured (or on
@@ -71,6 +76,8 @@ class PlaceRecognizerParams:
             raise ValueError(f"match_axes must be 'min' or 'mean', not {self.match_axes!r}")
         if len(self.match_weights) != 3 or min(self.match_weights) < 0 or max(self.match_weights) <= 0:
             raise ValueError(f"match_weights must be three weights >= 0, not all 0: {self.match_weights!r}")
+        if not 0.0 < self.repeat_scan_weight <= 1.0:
+            raise ValueError(f"repeat_scan_weight must be in (0, 1], got {self.repeat_scan_weight!r}")
 
 
 @dataclass(frozen=True)
@@ -297,6 +304,7 @@ class PlaceRecognizer:
         self._first_visit: int = NO_PLACE  # the new place whose signature still grows
         self._scans: deque[tuple[PlacedScan, float]] = deque()
         self._last_xy: tuple[float, float] | None = None
+        self._last_scan_pose: tuple[float, float, float] | None = None  # where the last scan was matched
         self._inside: _Mark | None = None
         self._departure: _Mark | None = None
         self._pending: _Pending | None = None
@@ -337,7 +345,8 @@ class PlaceRecognizer:
         self._move_belief_to(xy)
         scores, offsets, variances = self.match(xy)
         self.belief = _belief.correct(self.belief, scores, offsets, variances,
-                                      match_sharpness=p.match_sharpness, new_place_match=p.new_place_match)
+                                      match_sharpness=p.match_sharpness * self._scan_weight(dr),
+                                      new_place_match=p.new_place_match)
         if self._first_visit == self.current and self.current != NO_PLACE:
             self._grow_signature(self.current, placed)
         links = self._track(dr)
@@ -350,6 +359,20 @@ class PlaceRecognizer:
                 "rejected_traversals": float(self.rejected_traversals),
                 "rejected_arrivals": float(self.rejected_arrivals)}
         return RecognizerOutput(localization=self.localization(), links=links, diagnostics=diag)
+
+    def _scan_weight(self, dr: DeadReckonedPose) -> float:
+        """How much of an observation this scan is: ``repeat_scan_weight`` when the robot has not
+        moved or turned since the last scan (its sonar sees the same echoes again, and counting them
+        as independent evidence multiplies a look-alike's small edge scan after scan), else 1."""
+        p = self.params
+        pose = (dr.compass.x_m, dr.compass.y_m, dr.compass.heading_rad)
+        last, self._last_scan_pose = self._last_scan_pose, pose
+        if last is None:
+            return 1.0
+        turned = abs(math.remainder(pose[2] - last[2], math.tau))
+        if math.hypot(pose[0] - last[0], pose[1] - last[1]) < p.repeat_scan_m and turned < p.repeat_scan_rad:
+            return p.repeat_scan_weight
+        return 1.0
 
     def relocalise(self) -> None:
         """The explorer's legs keep failing from where the belief puts the robot: the belief may be wrong.

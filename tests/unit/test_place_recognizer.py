@@ -349,3 +349,34 @@ def test_equal_scores_keep_the_predicted_offset():
     best_shift, _ = rec._plausible_best(AxisMatch(scores=np.full((2, shifts.size), 0.8), best_shift=np.zeros(2, dtype=int),
                                                   best_score=np.full(2, 0.8), mean_score=np.full(2, 0.8)), [0, 1], 1, 10)
     assert best_shift.tolist() == [-2, 0]
+
+
+def _scans_until_taken(weight: float, *, still: bool) -> int:
+    """Place 0 is confirmed at (1.5, 1.5); dead reckoning then drives 5 m east and says the robot
+    stays there while the scans come back from place 0. Returns the scans until the belief holds
+    place 0 above 0.5 (100 if never)."""
+    import math
+
+    rec = PlaceRecognizer(PlaceRecognizerParams(relocalise_std_m=math.inf, uniform_transition=1e-3,
+                                                arrival_gate_m=math.inf, repeat_scan_weight=weight))
+    d = _Drive(rec)
+    dr = d.dr(1.5, 1.5)
+    rec.step(dr, scan_at(1.5, 1.5, 0.0, WALLS)[0])
+    rec.add_place(0, 1.5, 1.5, dr)
+    for k in range(1, 26):
+        rec.step(d.dr(1.5 + 0.2 * k, 1.5), scan_at(1.5 + 0.2 * k, 1.5, 0.0, WALLS)[0])
+    for n in range(1, 101):
+        x = 6.5 if still else 6.5 + 0.1 * n  # standing still, or dead reckoning driving on
+        rec.step(d.dr(x, 1.5), scan_at(1.5, 1.5, 0.0, WALLS)[0])
+        if rec.belief.ids.size and rec.belief.probs[rec.belief.index(0)] > 0.5:
+            return n
+    return 100
+
+
+def test_a_robot_standing_still_weighs_its_repeated_scans_less():
+    """The same echoes seen again from the same spot are not new evidence: a look-alike 5 m away
+    takes the belief of a stalled robot after several times as many scans as of a moving one."""
+    # a moving robot's scans count in full, whatever the weight
+    assert _scans_until_taken(0.2, still=False) == _scans_until_taken(1.0, still=False) < 100
+    still, untempered = _scans_until_taken(0.2, still=True), _scans_until_taken(1.0, still=True)
+    assert still >= 3 * untempered, (still, untempered)
