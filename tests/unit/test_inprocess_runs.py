@@ -71,8 +71,12 @@ def test_short_run_places_offsets_and_links(short_run):
 
 def test_compass_deviation_learned_and_taken_out_of_the_links():
     """50 simulated minutes of orebro-office pass the disturbances at (11, 6) and (38, 2) (12 and -18
-    degrees). Measured (seed 0): on the 39 links whose places the truth deviates by more than 4 degrees,
-    the published angles are 4.9 degrees off on average, against 6.6 for the same links uncorrected."""
+    degrees). On the links whose places the truth deviates by more than 4 degrees, what is left of the
+    true deviation after the recognizer's correction is 0.34-0.50 of it (seeds 0-7), and the published
+    angles are off by 0.62-0.92 of the same links' uncorrected angles (seed 0: 5.9 against 8.8 degrees).
+    The second ratio carries every other error of the links too, so it moves with the run (on the CI
+    machine seed 0 took another path and came to 0.85), and is held only to be below 1; the first
+    measures the learning itself (1 with no correction)."""
     w = load_world("orebro-office")
     run = InProcessRun(w, InProcessParams(seed=0, max_sim_time_s=3000.0, relax=False))
     rec = run.run()
@@ -84,13 +88,15 @@ def test_compass_deviation_learned_and_taken_out_of_the_links():
     for lk in rec.latest_links().values():
         a, b = lk.from_id, lk.to_id
         true_theta = math.atan2(truth[b][1] - truth[a][1], truth[b][0] - truth[a][0])
-        correction = recognizer._correction(a, b)  # what the recognizer took out
-        rows.append((0.5 * (true_dev[a] + true_dev[b]), wrap_angle(lk.theta_rad - true_theta),
+        correction = recognizer._correction(a, b)  # what the recognizer took out of the published angle
+        rows.append((0.5 * (true_dev[a] + true_dev[b]), correction, wrap_angle(lk.theta_rad - true_theta),
                      wrap_angle(lk.theta_rad + correction - true_theta)))
-    true_corr, corrected, uncorrected = np.abs(np.array(rows)).T
-    disturbed = true_corr > math.radians(4.0)
+    true_corr, corrections, corrected, uncorrected = np.array(rows).T
+    disturbed = np.abs(true_corr) > math.radians(4.0)
     assert disturbed.sum() >= 15
-    assert corrected[disturbed].mean() < 0.85 * uncorrected[disturbed].mean()
+    left = np.abs(true_corr - corrections)[disturbed].mean() / np.abs(true_corr)[disturbed].mean()
+    assert left < 0.65
+    assert np.abs(corrected)[disturbed].mean() < np.abs(uncorrected)[disturbed].mean()
     # the places well inside a disturbance are found turned its way
     strong = [i for i, d in true_dev.items() if abs(d) > math.radians(8.0)]
     assert len(strong) >= 5
