@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -210,8 +212,6 @@ def test_a_recognition_far_from_where_dead_reckoning_puts_the_robot_is_a_jump():
     """Place 0 is confirmed; dead reckoning then says the robot drove 10 m east while the scans come
     back to place 0 (a look-alike, as far as the recognizer can tell). With relocalisation mass to
     spare the belief takes place 0; the arrival gate keeps the robot between places instead."""
-    import math
-
     for gate_m, expect_at_0 in ((math.inf, True), (2.5, False)):
         rec = PlaceRecognizer(PlaceRecognizerParams(relocalise_std_m=math.inf, uniform_transition=0.05,
                                                     arrival_gate_m=gate_m))
@@ -236,7 +236,6 @@ def test_relocalising_lifts_the_gate_anchored_at_a_wrong_place_and_measures_no_l
     scan after scan. Asked to relocalise, the recognizer puts the robot at place 0 without measuring
     the link 1 -> 0 from that departure (the map gate, which would, is off here); from place 0 the
     gate and the links are back: the next traversal 0 -> 1 is measured and fused."""
-    import math
 
     def run(relocalise: bool):
         rec = PlaceRecognizer(PlaceRecognizerParams(relocalise_std_m=math.inf, uniform_transition=0.05,
@@ -355,8 +354,6 @@ def _scans_until_taken(weight: float, *, still: bool) -> int:
     """Place 0 is confirmed at (1.5, 1.5); dead reckoning then drives 5 m east and says the robot
     stays there while the scans come back from place 0. Returns the scans until the belief holds
     place 0 above 0.5 (100 if never)."""
-    import math
-
     rec = PlaceRecognizer(PlaceRecognizerParams(relocalise_std_m=math.inf, uniform_transition=1e-3,
                                                 arrival_gate_m=math.inf, repeat_scan_weight=weight))
     d = _Drive(rec)
