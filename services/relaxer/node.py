@@ -36,7 +36,8 @@ class RelaxerParams(msgspec.Struct, frozen=True, kw_only=True):
     min_belief_for_scan: float = 0.5  # a sonar scan is kept for the grid when localised this surely
     pairing_window: int = 32  # scans (and beliefs) kept while their partner of the same stamp is awaited
     max_grid_cells: int = 4_000_000  # a grid query that would need more cells is refused
-    settle_after_s: float = 0.2  # wall time without a map event after which the map is solved exactly
+    settle_after_s: float = 2.0  # wall time without a map event after which the map is solved exactly: a
+    # pause, not the gap between two events (exact solves fed back that often make worse maps, docs/relaxer.md)
     online: OnlineParams = OnlineParams()
 
 
@@ -126,7 +127,14 @@ def run(session: zenoh.Session, params: RelaxerParams, *, robot: str = topics.DE
             store.commit(core.add_scan(scan))
 
         # -- queries --------------------------------------------------------------------------------
+        def at_minimum() -> None:
+            """A map asked for whole is the minimum of its links, whatever the timing of the last events."""
+            outcome = core.settle()
+            if outcome is not None:
+                apply(outcome, time.perf_counter())
+
         def q_graph(_key: str, _p: QueryParams):
+            at_minimum()
             return core.graph()
 
         def q_place(key: str, _p: QueryParams):
@@ -153,6 +161,7 @@ def run(session: zenoh.Session, params: RelaxerParams, *, robot: str = topics.DE
         def q_grid(_key: str, p: QueryParams):
             res = p.float("resolution", params.online.grid_resolution_m, min_value=0.02, max_value=5.0)
             frame = p.str("frame", "relaxed", choices=("relaxed", "dead_reckoning"))
+            at_minimum()
             try:
                 return core.grid(res, frame, max_cells=params.max_grid_cells)
             except ValueError as e:
