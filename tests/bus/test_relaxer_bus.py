@@ -87,7 +87,8 @@ def test_updates_and_queries(relaxer):
     versions = [u.version for u in bus.updates]
     assert versions == list(range(1, len(versions) + 1)) and 4 <= len(versions) <= 8
     g = query(session, topics.map_graph(ROBOT), type_=MapGraph)
-    assert {p.place_id for p in g.places} == {0, 1, 2, 3} and len(g.links) == 4 and g.version == versions[-1]
+    assert {p.place_id for p in g.places} == {0, 1, 2, 3} and len(g.links) == 4
+    assert g.version in (versions[-1], versions[-1] + 1)  # asked for whole, a map short of its minimum settles
     g_json = query(session, topics.map_graph(ROBOT), fmt="json")
     assert len(g_json["places"]) == 4
     assert query(session, topics.map_place(ROBOT, 2), type_=PlaceReply).place.place_id == 2
@@ -97,7 +98,7 @@ def test_updates_and_queries(relaxer):
     assert grid.resolution_m == 0.5
     assert query(session, topics.map_scans(ROBOT), "place=1&max_offset=0.5", type_=ScanSet).scans == []
     st = query(session, topics.map_stats(ROBOT), type_=MapStats)
-    assert st.places == 4 and st.links == 4 and st.updates == len(versions)
+    assert st.places == 4 and st.links == 4 and st.updates == g.version
     bad = [
         (topics.map_place(ROBOT, 99), "", "no place 99"),
         (topics.map_place(ROBOT, "abc"), "", "place id must be an integer"),
@@ -130,7 +131,7 @@ def test_the_whole_map_asked_for_is_at_its_minimum(relaxer):
     for i in range(7):
         bus.link(i, i + 1, 1.0, 0.0, seq=i)
     assert wait_until(lambda: query(session, topics.map_stats(ROBOT), type_=MapStats).links == 7, 10)
-    swept = {p.place_id: (p.x_m, p.y_m) for p in bus.updates[-1].changed}
+    swept = {p.place_id: (p.x_m, p.y_m) for u in list(bus.updates) for p in u.changed}  # as last published
     g = query(session, topics.map_graph(ROBOT), type_=MapGraph)
     xy = {p.place_id: (p.x_m, p.y_m) for p in g.places}
     assert max(abs(x - i) for i, (x, _) in swept.items()) > 0.05  # the last sweep left it short
