@@ -81,14 +81,17 @@ def run(session: zenoh.Session, params: RelaxerParams, *, robot: str = topics.DE
             t0 = time.perf_counter()
             apply(core.on_link_deleted(msg.from_id, msg.to_id, msg.stamp), t0)
 
-        def settle() -> None:
-            """Idle for ``settle_after_s``: bring the map to its minimum (one exact solve, one update)."""
-            if time.monotonic() - last_event[0] < params.settle_after_s:
-                return
+        def at_minimum() -> None:
+            """Bring the map to its minimum if a sweep left it short (one exact solve, one update)."""
             t0 = time.perf_counter()
             outcome = core.settle()
             if outcome is not None:
                 apply(outcome, t0)
+
+        def settle() -> None:
+            """Idle for ``settle_after_s``: the map at rest is its minimum."""
+            if time.monotonic() - last_event[0] >= params.settle_after_s:
+                at_minimum()
 
         # a scan and the belief of the same stamp (the recognizer's, which carries the scan's
         # dead-reckoned pose) make one stored scan, in whichever order they come
@@ -127,14 +130,8 @@ def run(session: zenoh.Session, params: RelaxerParams, *, robot: str = topics.DE
             store.commit(core.add_scan(scan))
 
         # -- queries --------------------------------------------------------------------------------
-        def at_minimum() -> None:
-            """A map asked for whole is the minimum of its links, whatever the timing of the last events."""
-            outcome = core.settle()
-            if outcome is not None:
-                apply(outcome, time.perf_counter())
-
         def q_graph(_key: str, _p: QueryParams):
-            at_minimum()
+            at_minimum()  # the map asked for whole (written at a run's end) is the minimum, whatever the timing
             return core.graph()
 
         def q_place(key: str, _p: QueryParams):
@@ -161,7 +158,6 @@ def run(session: zenoh.Session, params: RelaxerParams, *, robot: str = topics.DE
         def q_grid(_key: str, p: QueryParams):
             res = p.float("resolution", params.online.grid_resolution_m, min_value=0.02, max_value=5.0)
             frame = p.str("frame", "relaxed", choices=("relaxed", "dead_reckoning"))
-            at_minimum()
             try:
                 return core.grid(res, frame, max_cells=params.max_grid_cells)
             except ValueError as e:
