@@ -107,6 +107,8 @@ class LocalizationBelief(Message, frozen=True, kw_only=True):
     offset_var_m2: float  # variance of the offset estimate (per axis)
     hypotheses: list[Hypothesis] = []  # the best few, most probable first
     pose: Pose2 | None = None  # the compass dead-reckoned pose of the scan (same stamp) the belief took in
+    link_seq: int = -1  # seq of the latest link the recognizer published up to this belief's scan (-1: none):
+    # a commander following the relaxed map waits for the map update that holds it
 
 
 class PlacePredicted(Message, frozen=True, kw_only=True):
@@ -232,6 +234,9 @@ class MapUpdate(Message, frozen=True, kw_only=True):
     iterations: int  # relaxation sweeps or solver iterations in this cycle
     method: str  # what ran this cycle: "sweep", "exact", "multilevel", ...
     noise: NoiseParams
+    link_seq: int = -1  # the highest seq of a measured link the relaxer had taken in (held or waiting for its
+    # places) when it made this update; -1: none
+    confirmed_seq: int = -1  # ... and of a place confirmation
 
 
 # --- system ----------------------------------------------------------------------------------------

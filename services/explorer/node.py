@@ -73,6 +73,8 @@ class ExplorerNodeParams:
     wait_localization: bool = True  # answer a tick only once the localizations of earlier scans are in
     localization_timeout_s: float = 2.0  # wall time to wait for one before answering without it
     follow_map: bool = True  # move places to the relaxed coordinates of map/update
+    wait_map: bool = True  # following the map, answer a tick once the updates of the links and places before it are in
+    map_timeout_s: float = 0.5  # wall time to wait for those updates before answering without them
     status_period_s: float = 1.0  # simulated time between status messages (and on every change)
     max_sim_time_s: float | None = None  # stop after answering the tick at or past this simulated time
     duration_s: float | None = None  # stop after this wall time
@@ -113,6 +115,12 @@ class ExplorerShell:
     ``localization_timeout_s`` (counted in health; the tick is then answered without). A pose of a
     tick already answered (the simulator repeats tick 0 until its first command arrives) is answered
     again with the same command. Once exploration is complete every tick is answered with zero velocity.
+
+    Following the relaxed map (``follow_map`` and ``wait_map``), once a map update has been heard, the
+    answer also waits for the update that holds the latest link named by the localization it uses
+    (``LocalizationBelief.link_seq``) and the latest place this shell confirmed (``MapUpdate.link_seq``,
+    ``confirmed_seq``), at most ``map_timeout_s`` (counted in ``map_timeouts``): the in-process loop
+    moves the places before the explorer's next step.
     """
 
     def __init__(self, params: ExplorerNodeParams, publish, clock=time.monotonic, save=None,
@@ -136,9 +144,12 @@ class ExplorerShell:
         self._status: tuple | None = None
         self._status_stamp = -math.inf
         self.output: ExplorerOutput | None = None
+        self._map_seen = False  # a relaxer publishes
+        self._map_heard = [-1, -1]  # the highest link and place-confirmation seqs a map update named
+        self._map_due = [-1, -1]  # ... that the next answer waits for
         self.counts = {"ticks": 0, "repeats": 0, "skipped_poses": 0, "scans": 0, "fixes": 0,
                        "localization_timeouts": 0, "map_updates": 0, "events": 0, "complete": 0,
-                       "late_scans": 0, "scan_timeouts": 0, "relocalisations": 0}
+                       "late_scans": 0, "scan_timeouts": 0, "relocalisations": 0, "map_timeouts": 0}
 
     def _tick_of(self, stamp: float) -> int:
         return round(stamp / self.params.dt_s)
@@ -229,6 +240,18 @@ class ExplorerShell:
         self.counts["map_updates"] += 1
         if self.params.follow_map and msg.changed:
             self.core.move_places({p.place_id: (p.x_m, p.y_m) for p in msg.changed})
+        self._map_seen = True
+        self._map_heard = [max(self._map_heard[0], msg.link_seq), max(self._map_heard[1], msg.confirmed_seq)]
+        self.try_answer()
+
+    def _map_in(self, earlier: list[int]) -> bool:
+        """Whether the map updates this answer waits for are in (or not waited for)."""
+        p = self.params
+        if not (p.follow_map and p.wait_map and self._map_seen):
+            return True
+        links = max((self._beliefs[t].link_seq for t in earlier if t in self._beliefs), default=-1)
+        self._map_due = [max(self._map_due[0], links), max(self._map_due[1], self._seq.get("places_confirmed", 0) - 1)]
+        return all(h >= d for h, d in zip(self._map_heard, self._map_due))
 
     def check_timeout(self) -> None:
         """Called periodically: answer a pose whose localization is overdue."""
@@ -259,6 +282,11 @@ class ExplorerShell:
             self.counts["localization_timeouts"] += len(missing)
             log.warning("%s: no localization for the scan of tick %d within %.1f s: answering tick %d without it",
                         SERVICE, missing[-1], self.params.localization_timeout_s, tick)
+        if not self._map_in(earlier):
+            if waited < self.params.map_timeout_s:
+                return
+            self.counts["map_timeouts"] += 1  # the relaxer is slow or gone: answer without its update
+            self._map_heard = [max(h, d) for h, d in zip(self._map_heard, self._map_due)]
         scan = self._scans[earlier[-1]] if earlier else None
         with_fix = [t for t in earlier if t in self._beliefs]
         fix = PlaceFix.from_message(self._beliefs[with_fix[-1]]) if with_fix else None
@@ -383,9 +411,10 @@ def run(session: zenoh.Session, params: ExplorerNodeParams = ExplorerNodeParams(
         node.spin(stop, tick=on_tick, period_s=0.05)
         update_detail()
         log.info("%s: %d ticks, %d confirmed places, complete=%s; %d localization timeouts, %d scan timeouts, "
-                 "%d late scans, %d skipped poses", SERVICE, shell.counts["ticks"], int(node.detail["confirmed"]),
-                 bool(shell.counts["complete"]), shell.counts["localization_timeouts"], shell.counts["scan_timeouts"],
-                 shell.counts["late_scans"], shell.counts["skipped_poses"])
+                 "%d map timeouts, %d late scans, %d skipped poses", SERVICE, shell.counts["ticks"],
+                 int(node.detail["confirmed"]), bool(shell.counts["complete"]), shell.counts["localization_timeouts"],
+                 shell.counts["scan_timeouts"], shell.counts["map_timeouts"], shell.counts["late_scans"],
+                 shell.counts["skipped_poses"])
     return shell
 
 
@@ -400,6 +429,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="wall time to wait for a localization before answering without it (default 2)")
     parser.add_argument("--no-follow-map", action="store_true",
                         help="keep places in dead-reckoning coordinates (ignore map/update)")
+    parser.add_argument("--no-wait-map", action="store_true",
+                        help="answer a tick without waiting for the map updates of the links and places before it")
     parser.add_argument("--max-sim-time", type=positive_float, default=None, metavar="S",
                         help="stop after answering the tick that reaches this simulated time")
     parser.add_argument("--duration-s", type=positive_float, default=None, help="stop after this wall time")
@@ -414,8 +445,8 @@ def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.E
     """What ``python -m services.explorer`` runs once the session is open."""
     run(session, ExplorerNodeParams(dt_s=args.dt_s, wait_localization=not args.no_wait_localization,
                                     localization_timeout_s=args.localization_timeout_s,
-                                    follow_map=not args.no_follow_map, max_sim_time_s=args.max_sim_time,
-                                    duration_s=args.duration_s, resume=args.resume,
+                                    follow_map=not args.no_follow_map, wait_map=not args.no_wait_map,
+                                    max_sim_time_s=args.max_sim_time, duration_s=args.duration_s, resume=args.resume,
                                     first_place_id=args.first_place_id, resume_at=robot_at_from_args(args),
                                     state_path=args.state),
         robot=args.robot, stop=stop)

@@ -56,6 +56,7 @@ log = logging.getLogger("relaxmap.place_recognizer")
 @dataclass(frozen=True)
 class PlaceRecognizerNodeParams:
     follow_map: bool = True  # move place centres to the relaxed coordinates of map/update
+    wait_map: bool = True  # following the map, the next input waits for the update that holds the last link
     pose_history: int = 512  # dead-reckoned poses kept to pair with scans and confirmations
     max_pending_scans: int = 64  # scans held while their pose is awaited (the oldest are dropped)
     dt_s: float = 0.1  # sensor_sim's tick: a message stamped t belongs to tick round(t / dt_s)
@@ -165,6 +166,10 @@ class RecognizerShell:
       so the events of tick ``j`` wait for that step and that scan: once both are in, every scan of
       tick ``j`` or earlier is.
 
+    - following the relaxed map (``follow_map`` and ``wait_map``), once a map update has been heard:
+      after a link is published, the next scan or event waits for the update that names it
+      (``MapUpdate.link_seq``), as the in-process loop moves the places before its next step.
+
     Without commands (nobody drives in lockstep) or sensors, an input waits at most
     ``order_timeout_s`` of wall time. Inputs that miss their turn are applied at once (counted).
     """
@@ -193,9 +198,13 @@ class RecognizerShell:
         self._relocalised = 0  # the count acted on
         self._belief_seq = 0
         self._link_seq = 0
+        self._map_heard = -1  # the highest link seq a map update named (-1: no update heard yet)
+        self._map_seen = False  # a relaxer publishes: links wait for their update
+        self._linked = -math.inf  # wall time of the last link published
         self.counts = {"scans": 0, "localised": 0, "links": 0, "places": 0, "deleted": 0, "map_updates": 0,
                        "dropped_scans": 0, "unpaired_scans": 0, "late_events": 0, "repeated_scans": 0,
-                       "order_timeouts": 0, "repeated_events": 0, "resent_links": 0, "relocalisations": 0}
+                       "order_timeouts": 0, "repeated_events": 0, "resent_links": 0, "relocalisations": 0,
+                       "map_timeouts": 0}
         self._last_scan_seq = -1
         self._last_belief: LocalizationBelief | None = None  # published for the scan of _last_scan_seq
         self.latest_stamp = -math.inf
@@ -236,6 +245,7 @@ class RecognizerShell:
         self._applied = set(ckpt.applied)
         self._cmd_tick, self._sensor_tick, self._done_tick = ckpt.cmd_tick, ckpt.sensor_tick, ckpt.done_tick
         self._belief_seq, self._link_seq, self._last_scan_seq = ckpt.belief_seq, ckpt.link_seq, ckpt.last_scan_seq
+        self._map_heard = self._link_seq - 1  # what the relaxer took before the restart is not waited for
         self.latest_stamp = ckpt.latest_stamp
         self.counts.update(ckpt.counts)
         # what was heard and not applied is gone with the killed process: only what was applied counts
@@ -315,6 +325,14 @@ class RecognizerShell:
         self.counts["map_updates"] += 1
         if self.params.follow_map and msg.changed:
             self.core.move_places({p.place_id: (p.x_m, p.y_m) for p in msg.changed})
+        self._map_seen = True
+        self._map_heard = max(self._map_heard, msg.link_seq)
+        self.drain()
+
+    def _map_in(self) -> bool:
+        """Whether the map updates of the links published so far are in (or not waited for)."""
+        p = self.params
+        return not (p.follow_map and p.wait_map and self._map_seen) or self._map_heard >= self._link_seq - 1
 
     def drain(self) -> None:
         """Apply every input whose turn has come (also called periodically, for the timeouts)."""
@@ -328,8 +346,10 @@ class RecognizerShell:
                 if not scan_first:
                     ready = (self._sensor_tick >= j + 1 and self._scan_heard >= self._scan_due and bool(self._stamps)
                              and self._stamps[-1] >= ev.stamp - 1e-9)
-                    if ready or now - since >= timeout:
+                    map_in = self._map_in()
+                    if (ready and map_in) or now - max(since, self._linked) >= timeout:
                         self.counts["order_timeouts"] += not ready
+                        self.counts["map_timeouts"] += ready and not map_in
                         self._give_up_waiting()
                         self._events.pop(0)
                         self._done_tick = max(self._done_tick, j)
@@ -342,8 +362,11 @@ class RecognizerShell:
                 has_pose = bool(self._stamps) and self._stamps[-1] >= scan.stamp - 1e-9
                 events_in = all(h >= d for h, d in zip(self._event_heard, self._event_due))
                 ready = has_pose and (t == 0 or (self._cmd_tick >= t - 1 and events_in))
-                if not events_first and (ready or (now - since >= timeout and self._stamps)):
+                map_in = self._map_in()
+                if not events_first and ((ready and map_in) or (now - max(since, self._linked) >= timeout
+                                                                and self._stamps)):
                     self.counts["order_timeouts"] += not ready
+                    self.counts["map_timeouts"] += ready and not map_in
                     self._give_up_waiting()
                     self._scans.pop(0)
                     self._done_tick = max(self._done_tick, t)
@@ -359,6 +382,7 @@ class RecognizerShell:
                         "without them", SERVICE, self._scan_due, self._event_due, self.params.order_timeout_s)
         self._scan_heard = max(self._scan_heard, self._scan_due)
         self._event_heard = [max(h, d) for h, d in zip(self._event_heard, self._event_due)]
+        self._map_heard = max(self._map_heard, self._link_seq - 1)
 
     def _relocalise_before(self, tick: int) -> None:
         """Act on the explorer's requests to relocalise named by the commands of ticks before ``tick``
@@ -390,13 +414,14 @@ class RecognizerShell:
         self.counts["scans"] += 1
         loc = out.localization
         self.counts["localised"] += loc.place_id >= 0
+        links = self._links(out, scan.stamp)
         belief = LocalizationBelief(
             stamp=scan.stamp, seq=self._belief_seq, place_id=loc.place_id, probability=loc.probability,
             offset_x_m=loc.offset_x_m, offset_y_m=loc.offset_y_m, offset_var_m2=loc.offset_var_m2,
-            hypotheses=[Hypothesis(place_id=i, probability=p) for i, p in loc.hypotheses], pose=dr.compass)
+            hypotheses=[Hypothesis(place_id=i, probability=p) for i, p in loc.hypotheses], pose=dr.compass,
+            link_seq=self._link_seq - 1)
         self._belief_seq += 1
         self._last_belief = belief
-        links = self._links(out, scan.stamp)
         self._commit(links)
         self._publish_belief(belief)
         for link in links:
@@ -429,6 +454,8 @@ class RecognizerShell:
             links.append(LinkMeasured(stamp=stamp, seq=self._link_seq, **asdict(link)))
             self._link_seq += 1
             self.counts["links"] += 1
+        if links:
+            self._linked = self._clock()  # the wait for their map update starts now
         return links
 
     def resend_recorded(self) -> int:
@@ -502,10 +529,11 @@ def run(session: zenoh.Session, params: PlaceRecognizerNodeParams = PlaceRecogni
 
         node.spin(stop, tick=on_tick, period_s=0.1)
         update_detail()
-        log.info("%s: %d scans, %d localised, %d places, %d links; %d order timeouts, %d late events, "
-                 "%d unpaired scans, %d dropped scans", SERVICE, shell.counts["scans"], shell.counts["localised"],
-                 shell.counts["places"], shell.counts["links"], shell.counts["order_timeouts"],
-                 shell.counts["late_events"], shell.counts["unpaired_scans"], shell.counts["dropped_scans"])
+        log.info("%s: %d scans, %d localised, %d places, %d links; %d order timeouts, %d map timeouts, %d late "
+                 "events, %d unpaired scans, %d dropped scans", SERVICE, shell.counts["scans"],
+                 shell.counts["localised"], shell.counts["places"], shell.counts["links"],
+                 shell.counts["order_timeouts"], shell.counts["map_timeouts"], shell.counts["late_events"],
+                 shell.counts["unpaired_scans"], shell.counts["dropped_scans"])
     return shell
 
 
@@ -515,6 +543,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="accepted for a uniform command line; the recognizer draws no random numbers")
     parser.add_argument("--no-follow-map", action="store_true",
                         help="keep place centres in dead-reckoning coordinates (ignore map/update)")
+    parser.add_argument("--no-wait-map", action="store_true",
+                        help="after a link, go on without waiting for the map update that holds it")
     parser.add_argument("--no-compass-deviation", action="store_true",
                         help="do not learn the compass's deviation per place nor correct the links' angles by it")
     parser.add_argument("--max-sim-time", type=positive_float, default=None, metavar="S",
@@ -532,7 +562,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main_run(session: zenoh.Session, args: argparse.Namespace, stop: threading.Event) -> None:
     """What ``python -m services.place_recognizer`` runs once the session is open."""
-    run(session, PlaceRecognizerNodeParams(follow_map=not args.no_follow_map, max_sim_time_s=args.max_sim_time,
+    run(session, PlaceRecognizerNodeParams(follow_map=not args.no_follow_map, wait_map=not args.no_wait_map,
+                                           max_sim_time_s=args.max_sim_time,
                                            duration_s=args.duration_s, order_timeout_s=args.order_timeout_s,
                                            state_path=args.state, links_log=args.links_log, resume=args.resume,
                                            resume_at=robot_at_from_args(args),

@@ -53,6 +53,8 @@ def run(session: zenoh.Session, params: RelaxerParams, *, robot: str = topics.DE
     scans: dict[int, SonarScan] = {}  # sonar scans awaiting their belief, by stamp in microseconds
     beliefs: dict[int, LocalizationBelief] = {}  # beliefs awaiting their scan
     last_event = [time.monotonic()]
+    heard = {"link_seq": -1, "confirmed_seq": -1}  # the latest link and place confirmation taken in, named in
+    # every update: a recognizer or explorer following the map waits for the update that holds its input
     with Node(session, "relaxer", robot=robot) as node:
         pub = node.publisher(topics.map_update(robot), MapUpdate)
 
@@ -60,17 +62,19 @@ def run(session: zenoh.Session, params: RelaxerParams, *, robot: str = topics.DE
             last_event[0] = time.monotonic()
             store.commit(outcome.tx)
             if outcome.update is not None:
-                pub.put(outcome.update)
+                pub.put(msgspec.structs.replace(outcome.update, **heard))
                 core.cycle_ms.append((time.perf_counter() - t0) * 1e3)
             node.detail.update(places=core.relaxer.graph.n_places, links=len(core.links), version=core.version,
                                pending_links=len(core._pending), scans=len(core.scans))
 
         def on_confirmed(msg: PlaceConfirmed) -> None:
             t0 = time.perf_counter()
+            heard["confirmed_seq"] = max(heard["confirmed_seq"], msg.seq)
             apply(core.on_place_confirmed(msg), t0)
 
         def on_measured(msg: LinkMeasured) -> None:
             t0 = time.perf_counter()
+            heard["link_seq"] = max(heard["link_seq"], msg.seq)
             apply(core.on_link_measured(msg), t0)
 
         def on_place_deleted(msg: PlaceDeleted) -> None:

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from messages.types import DeadReckonedPose, PlaceConfirmed, VelocityCommand
+from messages.types import (DeadReckonedPose, LocalizationBelief, MapUpdate, NoiseParams, PlaceConfirmed,
+                            PlacePosition, VelocityCommand)
 from services.dead_reckoning import core as dr_core
 from services.explorer.node import ExplorerNodeParams, ExplorerShell
 from services.place_recognizer.node import PlaceRecognizerNodeParams, RecognizerShell
@@ -230,3 +231,110 @@ def test_explorer_command_carries_its_count_of_relocalisation_requests():
     shell.on_sonar(f0.sonar)
     shell.on_dr_pose(p1)
     assert [c.relocalisations for c in commands(sent)] == [0, 2]
+
+
+def map_update(seq: int, link_seq: int, confirmed_seq: int = -1, changed=()) -> MapUpdate:
+    return MapUpdate(stamp=0.0, seq=seq, version=seq + 1, changed=list(changed), full=False, places=1, links=0,
+                     energy=0.0, iterations=1, method="sweep", noise=NoiseParams(s_dd=1e-4, s_aa=1e-3, s_da=0.0),
+                     link_seq=link_seq, confirmed_seq=confirmed_seq)
+
+
+def drive_to_a_second_place(clock: Clock, *, map_heard: bool):
+    """Place 7 confirmed at tick 0, place 8 at tick 40 (1.2 m on): the recognizer measures the link 7 -> 8
+    when it applies the second confirmation, after the scan of tick 40 and before that of tick 41."""
+    fs = frames(42)
+    beliefs: list = []
+    links: list = []
+    shell = RecognizerShell(PlaceRecognizerNodeParams(order_timeout_s=0.5), beliefs.append, links.append, clock=clock)
+    if map_heard:  # the relaxer's update for the first place
+        shell.on_map_update(map_update(0, link_seq=-1, confirmed_seq=0))
+    (f0, p0) = fs[0]
+    feed_tick(shell, f0, p0)
+    shell.on_command(command(p0, 0, confirmed_seq=0))
+    shell.on_explorer_event(confirmation(p0))
+    for j in range(1, 41):
+        f, p = fs[j]
+        feed_tick(shell, f, p)
+        shell.on_command(command(p, j, confirmed_seq=1 if j == 40 else 0))
+    p40 = fs[40][1]
+    shell.on_explorer_event(PlaceConfirmed(stamp=p40.stamp, seq=1, place_id=8, x_m=p40.compass.x_m,
+                                           y_m=p40.compass.y_m))
+    feed_tick(shell, *fs[41])
+    return shell, beliefs, links
+
+
+def test_recognizer_waits_for_the_map_update_that_holds_its_link():
+    clock = Clock()
+    shell, beliefs, links = drive_to_a_second_place(clock, map_heard=True)
+    assert [(lk.from_id, lk.to_id, lk.seq) for lk in links] == [(7, 8, 0)]
+    assert len(beliefs) == 41, "the scan of tick 41 was localised before the map update of the link before it"
+    shell.on_map_update(map_update(1, link_seq=-1, confirmed_seq=1))  # an update that does not hold it yet
+    assert len(beliefs) == 41
+    shell.on_map_update(map_update(2, link_seq=0, changed=[PlacePosition(place_id=8, x_m=5.0, y_m=5.0)]))
+    assert len(beliefs) == 42 and beliefs[-1].link_seq == 0
+    assert shell.core.belief.centres[shell.core.belief.index(8)].tolist() == [5.0, 5.0]
+    assert shell.counts["map_timeouts"] == 0 == shell.counts["order_timeouts"]
+
+
+def test_recognizer_goes_on_without_a_map_update_that_does_not_come():
+    clock = Clock()
+    shell, beliefs, links = drive_to_a_second_place(clock, map_heard=True)
+    assert len(links) == 1 and len(beliefs) == 41
+    clock.t += 0.6
+    shell.drain()
+    assert len(beliefs) == 42 and shell.counts["map_timeouts"] == 1 and shell.counts["order_timeouts"] == 0
+
+
+def test_recognizer_without_a_relaxer_does_not_wait_for_map_updates():
+    clock = Clock()
+    shell, beliefs, links = drive_to_a_second_place(clock, map_heard=False)
+    assert len(links) == 1 and len(beliefs) == 42 and shell.counts["map_timeouts"] == 0
+
+
+def belief_of(pose: DeadReckonedPose, seq: int, link_seq: int) -> LocalizationBelief:
+    return LocalizationBelief(stamp=pose.stamp, seq=seq, place_id=-1, probability=0.0, offset_x_m=0.0,
+                              offset_y_m=0.0, offset_var_m2=1.0, link_seq=link_seq)
+
+
+def test_explorer_waits_for_the_map_update_of_the_links_its_localization_names():
+    clock = Clock()
+    (f0, p0), (f1, p1), (f2, p2) = frames(3)
+    sent: list = []
+    shell = ExplorerShell(ExplorerNodeParams(localization_timeout_s=2.0, map_timeout_s=0.5),
+                          lambda name, msg: sent.append((name, msg)), clock=clock)
+    shell.on_map_update(map_update(0, link_seq=-1))
+    shell.on_dr_pose(p0)
+    shell.on_sonar(f0.sonar)
+    shell.on_localization(belief_of(p0, 0, link_seq=-1))
+    shell.on_odometry(f1.odometry)
+    shell.on_dr_pose(p1)
+    assert [c.tick for c in commands(sent)] == [0, 1]
+    shell.on_sonar(f1.sonar)
+    shell.on_localization(belief_of(p1, 1, link_seq=3))  # the recognizer published links 0-3 by then
+    shell.on_odometry(f2.odometry)
+    shell.on_dr_pose(p2)
+    assert [c.tick for c in commands(sent)] == [0, 1], "tick 2 answered before the map held link 3"
+    confirmed = [m.seq for name, m in sent if name == "places_confirmed"]
+    assert confirmed == [0]  # the first place, at the start
+    shell.on_map_update(map_update(1, link_seq=3))
+    assert [c.tick for c in commands(sent)] == [0, 1], "tick 2 answered before the map held the place it confirmed"
+    shell.on_map_update(map_update(2, link_seq=3, confirmed_seq=0))
+    assert [c.tick for c in commands(sent)] == [0, 1, 2] and shell.counts["map_timeouts"] == 0
+
+
+def test_explorer_answers_without_a_map_update_that_does_not_come():
+    clock = Clock()
+    (f0, p0), (f1, p1) = frames(2)
+    sent: list = []
+    shell = ExplorerShell(ExplorerNodeParams(localization_timeout_s=2.0, map_timeout_s=0.5),
+                          lambda name, msg: sent.append((name, msg)), clock=clock)
+    shell.on_map_update(map_update(0, link_seq=-1))
+    shell.on_dr_pose(p0)
+    shell.on_sonar(f0.sonar)
+    shell.on_localization(belief_of(p0, 0, link_seq=0))
+    shell.on_odometry(f1.odometry)
+    shell.on_dr_pose(p1)
+    assert [c.tick for c in commands(sent)] == [0]
+    clock.t += 0.6
+    shell.check_timeout()
+    assert [c.tick for c in commands(sent)] == [0, 1] and shell.counts["map_timeouts"] == 1
