@@ -86,6 +86,9 @@ def test_updates_and_queries(relaxer):
     # one update per event that changed the map (a link that arrives before its places waits for them)
     versions = [u.version for u in bus.updates]
     assert versions == list(range(1, len(versions) + 1)) and 4 <= len(versions) <= 8
+    # each update names the latest link and place confirmation taken in (what followers wait for)
+    named = [(u.link_seq, u.confirmed_seq) for u in bus.updates]
+    assert named == sorted(named) and named[-1] == (3, 3) and named[0][1] >= 0
     g = query(session, topics.map_graph(ROBOT), type_=MapGraph)
     assert {p.place_id for p in g.places} == {0, 1, 2, 3} and len(g.links) == 4
     assert g.version in (versions[-1], versions[-1] + 1)  # asked for whole, a map short of its minimum settles

@@ -296,16 +296,23 @@ def belief_of(pose: DeadReckonedPose, seq: int, link_seq: int) -> LocalizationBe
                               offset_y_m=0.0, offset_var_m2=1.0, link_seq=link_seq)
 
 
-def test_explorer_waits_for_the_map_update_of_the_links_its_localization_names():
-    clock = Clock()
-    (f0, p0), (f1, p1), (f2, p2) = frames(3)
+def map_following_explorer(clock: Clock, first) -> tuple[ExplorerShell, list]:
+    """An explorer that has heard a relaxer, past tick 0 with its scan and localization."""
+    (f0, p0), link_seq = first
     sent: list = []
     shell = ExplorerShell(ExplorerNodeParams(localization_timeout_s=2.0, map_timeout_s=0.5),
                           lambda name, msg: sent.append((name, msg)), clock=clock)
     shell.on_map_update(map_update(0, link_seq=-1))
     shell.on_dr_pose(p0)
     shell.on_sonar(f0.sonar)
-    shell.on_localization(belief_of(p0, 0, link_seq=-1))
+    shell.on_localization(belief_of(p0, 0, link_seq=link_seq))
+    return shell, sent
+
+
+def test_explorer_waits_for_the_map_update_of_the_links_its_localization_names():
+    clock = Clock()
+    (f0, p0), (f1, p1), (f2, p2) = frames(3)
+    shell, sent = map_following_explorer(clock, ((f0, p0), -1))
     shell.on_odometry(f1.odometry)
     shell.on_dr_pose(p1)
     assert [c.tick for c in commands(sent)] == [0, 1]
@@ -325,13 +332,7 @@ def test_explorer_waits_for_the_map_update_of_the_links_its_localization_names()
 def test_explorer_answers_without_a_map_update_that_does_not_come():
     clock = Clock()
     (f0, p0), (f1, p1) = frames(2)
-    sent: list = []
-    shell = ExplorerShell(ExplorerNodeParams(localization_timeout_s=2.0, map_timeout_s=0.5),
-                          lambda name, msg: sent.append((name, msg)), clock=clock)
-    shell.on_map_update(map_update(0, link_seq=-1))
-    shell.on_dr_pose(p0)
-    shell.on_sonar(f0.sonar)
-    shell.on_localization(belief_of(p0, 0, link_seq=0))
+    shell, sent = map_following_explorer(clock, ((f0, p0), 0))
     shell.on_odometry(f1.odometry)
     shell.on_dr_pose(p1)
     assert [c.tick for c in commands(sent)] == [0]
