@@ -286,6 +286,8 @@ class ExplorerShell:
             if waited < self.params.map_timeout_s:
                 return
             self.counts["map_timeouts"] += 1  # the relaxer is slow or gone: answer without its update
+            log.warning("%s: no map update for link %d and place confirmation %d within %.1f s: answering tick %d "
+                        "without it", SERVICE, *self._map_due, self.params.map_timeout_s, tick)
             self._map_heard = [max(h, d) for h, d in zip(self._map_heard, self._map_due)]
         scan = self._scans[earlier[-1]] if earlier else None
         with_fix = [t for t in earlier if t in self._beliefs]

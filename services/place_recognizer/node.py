@@ -380,6 +380,9 @@ class RecognizerShell:
         if self._scan_heard < self._scan_due or any(h < d for h, d in zip(self._event_heard, self._event_due)):
             log.warning("%s: scans up to seq %d and place events up to seqs %s not heard within %.1f s; going on "
                         "without them", SERVICE, self._scan_due, self._event_due, self.params.order_timeout_s)
+        if not self._map_in():
+            log.warning("%s: no map update for link %d within %.1f s; going on without it", SERVICE,
+                        self._link_seq - 1, self.params.order_timeout_s)
         self._scan_heard = max(self._scan_heard, self._scan_due)
         self._event_heard = [max(h, d) for h, d in zip(self._event_heard, self._event_due)]
         self._map_heard = max(self._map_heard, self._link_seq - 1)
