@@ -146,7 +146,6 @@ class ExplorerShell:
         self.output: ExplorerOutput | None = None
         self._map_seen = False  # a relaxer publishes
         self._map_heard = [-1, -1]  # the highest link and place-confirmation seqs a map update named
-        self._map_due = [-1, -1]  # ... that the next answer waits for
         self.counts = {"ticks": 0, "repeats": 0, "skipped_poses": 0, "scans": 0, "fixes": 0,
                        "localization_timeouts": 0, "map_updates": 0, "events": 0, "complete": 0,
                        "late_scans": 0, "scan_timeouts": 0, "relocalisations": 0, "map_timeouts": 0}
@@ -244,14 +243,14 @@ class ExplorerShell:
         self._map_heard = [max(self._map_heard[0], msg.link_seq), max(self._map_heard[1], msg.confirmed_seq)]
         self.try_answer()
 
-    def _map_in(self, earlier: list[int]) -> bool:
-        """Whether the map updates this answer waits for are in (or not waited for)."""
+    def _map_due(self, earlier: list[int]) -> list[int] | None:
+        """The link and place-confirmation seqs whose map updates the answer after the scans of ``earlier``
+        ticks waits for; None when it waits for none."""
         p = self.params
         if not (p.follow_map and p.wait_map and self._map_seen):
-            return True
+            return None
         links = max((self._beliefs[t].link_seq for t in earlier if t in self._beliefs), default=-1)
-        self._map_due = [max(self._map_due[0], links), max(self._map_due[1], self._seq.get("places_confirmed", 0) - 1)]
-        return all(h >= d for h, d in zip(self._map_heard, self._map_due))
+        return [links, self._seq.get("places_confirmed", 0) - 1]
 
     def check_timeout(self) -> None:
         """Called periodically: answer a pose whose localization is overdue."""
@@ -282,13 +281,14 @@ class ExplorerShell:
             self.counts["localization_timeouts"] += len(missing)
             log.warning("%s: no localization for the scan of tick %d within %.1f s: answering tick %d without it",
                         SERVICE, missing[-1], self.params.localization_timeout_s, tick)
-        if not self._map_in(earlier):
+        due = self._map_due(earlier)
+        if due is not None and any(h < d for h, d in zip(self._map_heard, due)):
             if waited < self.params.map_timeout_s:
                 return
             self.counts["map_timeouts"] += 1  # the relaxer is slow or gone: answer without its update
             log.warning("%s: no map update for link %d and place confirmation %d within %.1f s: answering tick %d "
-                        "without it", SERVICE, *self._map_due, self.params.map_timeout_s, tick)
-            self._map_heard = [max(h, d) for h, d in zip(self._map_heard, self._map_due)]
+                        "without it", SERVICE, *due, self.params.map_timeout_s, tick)
+            self._map_heard = [max(h, d) for h, d in zip(self._map_heard, due)]
         scan = self._scans[earlier[-1]] if earlier else None
         with_fix = [t for t in earlier if t in self._beliefs]
         fix = PlaceFix.from_message(self._beliefs[with_fix[-1]]) if with_fix else None

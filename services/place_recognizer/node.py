@@ -346,10 +346,8 @@ class RecognizerShell:
                 if not scan_first:
                     ready = (self._sensor_tick >= j + 1 and self._scan_heard >= self._scan_due and bool(self._stamps)
                              and self._stamps[-1] >= ev.stamp - 1e-9)
-                    map_in = self._map_in()
-                    if (ready and map_in) or now - max(since, self._linked) >= timeout:
+                    if (ready and self._map_in()) or now - max(since, self._linked) >= timeout:
                         self.counts["order_timeouts"] += not ready
-                        self.counts["map_timeouts"] += ready and not map_in
                         self._give_up_waiting()
                         self._events.pop(0)
                         self._done_tick = max(self._done_tick, j)
@@ -362,11 +360,9 @@ class RecognizerShell:
                 has_pose = bool(self._stamps) and self._stamps[-1] >= scan.stamp - 1e-9
                 events_in = all(h >= d for h, d in zip(self._event_heard, self._event_due))
                 ready = has_pose and (t == 0 or (self._cmd_tick >= t - 1 and events_in))
-                map_in = self._map_in()
-                if not events_first and ((ready and map_in) or (now - max(since, self._linked) >= timeout
+                if not events_first and ((ready and self._map_in()) or (now - max(since, self._linked) >= timeout
                                                                 and self._stamps)):
                     self.counts["order_timeouts"] += not ready
-                    self.counts["map_timeouts"] += ready and not map_in
                     self._give_up_waiting()
                     self._scans.pop(0)
                     self._done_tick = max(self._done_tick, t)
@@ -381,6 +377,7 @@ class RecognizerShell:
             log.warning("%s: scans up to seq %d and place events up to seqs %s not heard within %.1f s; going on "
                         "without them", SERVICE, self._scan_due, self._event_due, self.params.order_timeout_s)
         if not self._map_in():
+            self.counts["map_timeouts"] += 1
             log.warning("%s: no map update for link %d within %.1f s; going on without it", SERVICE,
                         self._link_seq - 1, self.params.order_timeout_s)
         self._scan_heard = max(self._scan_heard, self._scan_due)
