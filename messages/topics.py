@@ -39,6 +39,10 @@ def localization(robot: str = DEFAULT_ROBOT) -> str:
     return _key(robot, "places", "localization")
 
 
+def recognizer_progress(robot: str = DEFAULT_ROBOT) -> str:
+    return _key(robot, "places", "progress")
+
+
 def links_measured(robot: str = DEFAULT_ROBOT) -> str:
     return _key(robot, "links", "measured")
 
@@ -125,7 +129,7 @@ MAP_EVENT_TOPICS = ("places_confirmed", "places_deleted", "links_measured", "lin
 def all_topics(robot: str = DEFAULT_ROBOT) -> dict[str, str]:
     """Name -> key expression of every fixed topic (queryables included), for checks and tools."""
     fns = (
-        odometry, compass, sonar, truth_pose, dr_pose, localization, links_measured,
+        odometry, compass, sonar, truth_pose, dr_pose, localization, recognizer_progress, links_measured,
         places_predicted, places_confirmed, places_deleted, links_inferred, links_confidence,
         links_deleted, cmd_velocity, exploration_status, map_update, map_graph, map_path,
         map_grid, map_stats, map_scans,

@@ -44,7 +44,8 @@ class OdometryStep(Message, frozen=True, kw_only=True):
     distance_m: float  # signed distance travelled by the wheels in this step
     rotation_rad: float  # heading change measured by the wheels in this step
     dt_s: float  # duration of the step
-    sonar_seq: int = -1  # seq of the latest sonar scan published before this step (-1: none yet)
+    sonar_seq: int = -1  # seq of the latest sonar scan of this tick or earlier (-1: none yet); the simulator
+    # publishes a tick's scan before its step, so a receiver of the step knows whether the tick has a scan
 
 
 class CompassReading(Message, frozen=True, kw_only=True):
@@ -109,6 +110,17 @@ class LocalizationBelief(Message, frozen=True, kw_only=True):
     pose: Pose2 | None = None  # the compass dead-reckoned pose of the scan (same stamp) the belief took in
     link_seq: int = -1  # seq of the latest link the recognizer published up to this belief's scan (-1: none):
     # a commander following the relaxed map waits for the map update that holds it
+
+
+class RecognizerProgress(Message, frozen=True, kw_only=True):
+    """The place recognizer has done the work of one simulator tick: the explorer's place events of the
+    tick before and the tick's sonar scan (whichever of them there were). ``link_seq`` is the latest link
+    it had published then (-1: none). A lockstep commander following the relaxed map waits for it, and
+    for the map update that holds that link, before it answers the tick (as the in-process loop steps
+    the explorer after the recognizer)."""
+
+    tick: int
+    link_seq: int = -1
 
 
 class PlacePredicted(Message, frozen=True, kw_only=True):
@@ -178,9 +190,10 @@ class LinkDeleted(Message, frozen=True, kw_only=True):
 class VelocityCommand(Message, frozen=True, kw_only=True):
     """Velocity command for the robot. ``tick`` is the simulation tick it answers (lockstep clock).
 
-    ``confirmed_seq`` and ``deleted_seq`` are the seqs of the latest ``PlaceConfirmed`` and
-    ``PlaceDeleted`` the explorer published before this command (-1: none), so that a receiver knows
-    which events it must have heard: zenoh keeps the order of one key's messages, not across keys.
+    ``confirmed_seq``, ``deleted_seq`` and ``links_deleted_seq`` are the seqs of the latest
+    ``PlaceConfirmed``, ``PlaceDeleted`` and ``LinkDeleted`` the explorer published before this command
+    (-1: none), so that a receiver knows which events it must have heard: zenoh keeps the order of one
+    key's messages, not across keys. The relaxer applies the events a command names together.
     ``relocalisations`` counts the explorer's requests to the place recognizer to relocalise, up to
     this command (its legs keep failing from where the belief puts the robot): the recognizer acts on
     a rise of the count before its next scan.
@@ -192,6 +205,7 @@ class VelocityCommand(Message, frozen=True, kw_only=True):
     confirmed_seq: int = -1
     deleted_seq: int = -1
     relocalisations: int = 0
+    links_deleted_seq: int = -1
 
 
 class ExplorationStatus(Message, frozen=True, kw_only=True):
@@ -236,7 +250,9 @@ class MapUpdate(Message, frozen=True, kw_only=True):
     noise: NoiseParams
     link_seq: int = -1  # the highest seq of a measured link the relaxer had taken in (held or waiting for its
     # places) when it made this update; -1: none
-    confirmed_seq: int = -1  # ... and of a place confirmation
+    confirmed_seq: int = -1  # ... and of a place confirmation applied
+    deleted_seq: int = -1  # ... of a place deletion applied
+    links_deleted_seq: int = -1  # ... of a link deletion applied
 
 
 # --- system ----------------------------------------------------------------------------------------
@@ -378,6 +394,7 @@ ALL_MESSAGES: tuple[type[Message], ...] = (
     TruthPose,
     DeadReckonedPose,
     LocalizationBelief,
+    RecognizerProgress,
     PlacePredicted,
     PlaceConfirmed,
     PlaceDeleted,

@@ -102,11 +102,11 @@ def step(state: SimState, command: tuple[float, float], model: SimModel,
                      path_length_m=state.path_length_m + abs(motion.distance_m))
     due = ((p.sonar_every_m > 0 and state.travel_since_scan_m >= p.sonar_every_m)
            or (p.sonar_period_s > 0 and state.time_since_scan_s >= p.sonar_period_s - 1e-9))
-    odometry = OdometryStep(stamp=stamp, seq=tick - 1, distance_m=dist, rotation_rad=rot, dt_s=p.dt_s,
-                            sonar_seq=state.scans - 1)  # the scans of earlier ticks
     scan = _scan(model, pose, state, stamp, rng) if due else None
     if scan is not None:
         state = _after_scan(state)
+    odometry = OdometryStep(stamp=stamp, seq=tick - 1, distance_m=dist, rotation_rad=rot, dt_s=p.dt_s,
+                            sonar_seq=state.scans - 1)  # the scans of this tick and earlier
     return state, Frame(
         tick=tick, truth=_truth(pose, tick, stamp),
         compass=CompassReading(stamp=stamp, seq=tick, heading_rad=heading), odometry=odometry, sonar=scan)

@@ -195,13 +195,14 @@ class _Outputs:
 
     def publish(self, frame: core.Frame) -> None:
         """Truth first (a scripted commander may key on it); compass before odometry, because dead
-        reckoning pairs a step with the compass reading of its end."""
+        reckoning pairs a step with the compass reading of its end; the scan before the odometry step
+        that names it (``sonar_seq``)."""
         self._truth.put(frame.truth)
         self._compass.put(frame.compass)
-        if frame.odometry is not None:
-            self._odometry.put(frame.odometry)
         if frame.sonar is not None:
             self._sonar.put(frame.sonar)
+        if frame.odometry is not None:
+            self._odometry.put(frame.odometry)
 
     def undeclare(self) -> None:
         for pub in (self._truth, self._compass, self._odometry, self._sonar):

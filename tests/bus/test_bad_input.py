@@ -34,6 +34,7 @@ from messages.types import (
     PlaceConfirmed,
     PlaceDeleted,
     PlacePredicted,
+    RecognizerProgress,
     ScanSet,
     SonarScan,
     TruthPose,
@@ -51,7 +52,8 @@ EXAMPLES = 40  # hypothesis examples per service (each one a message or a query)
 # this covers every key, so a new topic cannot be left out.
 CARRIES = {
     "odometry": OdometryStep, "compass": CompassReading, "sonar": SonarScan, "truth_pose": TruthPose,
-    "dr_pose": DeadReckonedPose, "localization": LocalizationBelief, "links_measured": LinkMeasured,
+    "dr_pose": DeadReckonedPose, "localization": LocalizationBelief, "recognizer_progress": RecognizerProgress,
+    "links_measured": LinkMeasured,
     "places_predicted": PlacePredicted, "places_confirmed": PlaceConfirmed, "places_deleted": PlaceDeleted,
     "links_inferred": LinkInferred, "links_confidence": LinkConfidence, "links_deleted": LinkDeleted,
     "cmd_velocity": VelocityCommand, "exploration_status": ExplorationStatus, "map_update": MapUpdate,
