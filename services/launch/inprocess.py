@@ -26,9 +26,11 @@ import numpy as np
 from messages.types import (
     CompassReading,
     DeadReckonedPose,
+    LinkDeleted,
     LinkMeasured,
     OdometryStep,
     PlaceConfirmed,
+    PlaceDeleted,
     SonarScan,
 )
 from services.dead_reckoning import core as dr_core
@@ -54,7 +56,7 @@ def _default_sim() -> sim_core.SensorSimParams:
 class InProcessParams:
     """Parameters of an in-process run."""
 
-    seed: int = 0  # seed of the simulator's one random generator
+    seed: int = 0  # seed of the simulator's random generator and of the relaxer's (a separate one)
     max_sim_time_s: float = 3600.0  # end the run at this simulated time
     stop_when_complete: bool = True  # end the run once exploration is complete
     relax: bool = True  # run the relaxer's on-line map and feed relaxed coordinates back
@@ -146,7 +148,8 @@ class InProcessRun:
         self.rng = np.random.default_rng(params.seed)
         self.recognizer = PlaceRecognizer(params.recognizer)
         self.explorer = Explorer(params.explorer)
-        self.online = OnlineMap(params.online) if params.relax else None
+        # the relaxer's own generator from the same seed, as `relaxmap run` gives the relaxer node (--seed)
+        self.online = OnlineMap(params.online, rng=np.random.default_rng(params.seed)) if params.relax else None
         self.record = RunRecord(world=world.name, seed=params.seed, dt_s=params.sim.dt_s)
         self._dr = dr_core.DrState()
         self._timings = dict.fromkeys(("sim", "dead_reckoning", "recognizer", "explorer", "relaxer"), 0.0)
@@ -261,17 +264,21 @@ class InProcessRun:
                 self._timings["relaxer"] += time.perf_counter() - t0
 
     def _relax_events(self, events: tuple, stamp: float) -> None:
+        """The explorer's map events of this step, to the relaxer together (as the relaxer node applies
+        the events one velocity command names)."""
         if self.online is None:
             return
         t0 = time.perf_counter()
-        for ev in events:
+        batch = []
+        for i, ev in enumerate(events):
             if isinstance(ev, PlaceConfirmedEvent):
-                msg = PlaceConfirmed(stamp=stamp, seq=0, place_id=ev.place_id, x_m=ev.x_m, y_m=ev.y_m)
-                self._apply(self.online.on_place_confirmed(msg).update)
+                batch.append(PlaceConfirmed(stamp=stamp, seq=i, place_id=ev.place_id, x_m=ev.x_m, y_m=ev.y_m))
             elif isinstance(ev, PlaceDeletedEvent):
-                self._apply(self.online.on_place_deleted(ev.place_id, stamp).update)
+                batch.append(PlaceDeleted(stamp=stamp, seq=i, place_id=ev.place_id, reason=ev.reason))
             elif isinstance(ev, LinkDeletedEvent):
-                self._apply(self.online.on_link_deleted(ev.from_id, ev.to_id, stamp).update)
+                batch.append(LinkDeleted(stamp=stamp, seq=i, from_id=ev.from_id, to_id=ev.to_id, reason=ev.reason))
+        if batch:
+            self._apply(self.online.on_explorer_events(batch, stamp).update)
         self._timings["relaxer"] += time.perf_counter() - t0
 
     def _apply(self, update) -> None:

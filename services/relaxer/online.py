@@ -23,6 +23,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
 from messages.types import (
+    LinkDeleted,
     LinkMeasured,
     MapGraph,
     MapLink,
@@ -33,6 +34,7 @@ from messages.types import (
     OccupancyGrid,
     PathReply,
     PlaceConfirmed,
+    PlaceDeleted,
     PlacePosition,
     PlaceReply,
     PlaceScan,
@@ -80,6 +82,9 @@ def _noise_core(n: NoiseParams) -> CompassNoise:
 
 def _pair(a: int, b: int) -> tuple[int, int]:
     return (a, b) if a <= b else (b, a)
+
+
+_EVENT_ORDER = {PlaceConfirmed: 0, PlaceDeleted: 1, LinkDeleted: 2}  # within one step of the explorer
 
 
 def _same(link: MapLink, msg: LinkMeasured) -> bool:
@@ -153,13 +158,44 @@ class OnlineMap:
             self.energy = self.relaxer.energy()
 
     # -- events -----------------------------------------------------------------------------------
-    def on_place_confirmed(self, msg: PlaceConfirmed) -> CycleOutcome:
-        """A confirmed place; ``ValueError`` (nothing changed) for coordinates that are not finite."""
+    @staticmethod
+    def check_place(msg: PlaceConfirmed) -> None:
+        """``ValueError`` for a confirmation no map can hold (coordinates that are not finite)."""
         if not (math.isfinite(msg.x_m) and math.isfinite(msg.y_m)):
             raise ValueError(f"place {msg.place_id} at ({msg.x_m}, {msg.y_m})")
+
+    def on_place_confirmed(self, msg: PlaceConfirmed) -> CycleOutcome:
+        """A confirmed place; ``ValueError`` (nothing changed) for coordinates that are not finite."""
+        self.check_place(msg)
+        return self.on_explorer_events([msg], msg.stamp, always=False)
+
+    def on_explorer_events(self, events: list[PlaceConfirmed | PlaceDeleted | LinkDeleted], stamp: float, *,
+                           always: bool = True) -> CycleOutcome:
+        """The explorer's map events of one step (places confirmed, places and links deleted), applied
+        together in a fixed order (confirmations, place deletions, link deletions, each in seq order)
+        and relaxed by one cycle: the map after them does not depend on the order they came in. A step
+        whose events change nothing (a link the map never held deleted) still gives an update, without a
+        cycle, which tells the services waiting for it that the events are in (unless not ``always``)."""
         tx = Transaction()
+        changed = False
+        for ev in sorted(events, key=lambda e: (_EVENT_ORDER[type(e)], e.seq)):
+            if isinstance(ev, PlaceConfirmed):
+                changed |= self._confirm(ev, tx)
+            elif isinstance(ev, PlaceDeleted):
+                changed |= self._delete_place(ev.place_id, tx)
+            else:
+                changed |= self._delete_link(ev.from_id, ev.to_id, ev.stamp, tx)
+        if changed:
+            return self._cycle(stamp, tx)
+        if always and events:
+            self.version += 1
+            tx.version = self.version
+            return CycleOutcome(self._update(stamp, [], False, 0, "none"), tx)
+        return CycleOutcome(None, tx)
+
+    def _confirm(self, msg: PlaceConfirmed, tx: Transaction) -> bool:
         if self.relaxer.graph.has_place(msg.place_id) or msg.place_id in self.deleted:
-            return CycleOutcome(None, tx)
+            return False
         self.relaxer.add_place(msg.place_id, (msg.x_m, msg.y_m))
         self.initial[msg.place_id] = (msg.x_m, msg.y_m)
         tx.new_places.append((msg.place_id, msg.x_m, msg.y_m, msg.stamp))
@@ -168,7 +204,7 @@ class OnlineMap:
             if self.relaxer.graph.has_place(lk.from_id) and self.relaxer.graph.has_place(lk.to_id):
                 del self._pending[key]
                 self._put_link(lk, tx)
-        return self._cycle(msg.stamp, tx)
+        return True
 
     def on_link_measured(self, msg: LinkMeasured) -> CycleOutcome:
         """A measured link; ``ValueError`` (nothing changed) for a measurement no map can hold."""
@@ -212,13 +248,20 @@ class OnlineMap:
         tx.links.append((link, msg.stamp))
 
     def on_place_deleted(self, place_id: int, stamp: float) -> CycleOutcome:
-        tx = Transaction()
+        return self.on_explorer_events([PlaceDeleted(stamp=stamp, seq=0, place_id=place_id, reason="")], stamp,
+                                       always=False)
+
+    def on_link_deleted(self, a: int, b: int, stamp: float) -> CycleOutcome:
+        return self.on_explorer_events([LinkDeleted(stamp=stamp, seq=0, from_id=a, to_id=b, reason="")], stamp,
+                                       always=False)
+
+    def _delete_place(self, place_id: int, tx: Transaction) -> bool:
         if not self.relaxer.graph.has_place(place_id):
             if place_id not in self.deleted:
                 self.deleted.add(place_id)
                 tx.deleted_places.append(place_id)
                 self._pending = {k: v for k, v in self._pending.items() if place_id not in k}
-            return CycleOutcome(None, tx)
+            return False
         self.relaxer.remove_place(place_id)
         self.initial.pop(place_id, None)
         for key in [k for k in self.links if place_id in k]:
@@ -227,23 +270,22 @@ class OnlineMap:
         self._pending = {k: v for k, v in self._pending.items() if place_id not in k}
         tx.deleted_places.append(place_id)
         self.deleted.add(place_id)
-        return self._cycle(stamp, tx)
+        return True
 
-    def on_link_deleted(self, a: int, b: int, stamp: float) -> CycleOutcome:
-        tx = Transaction()
+    def _delete_link(self, a: int, b: int, stamp: float, tx: Transaction) -> bool:
         key = _pair(a, b)
         pending = self._pending.get(key)
         if pending is not None and pending.stamp <= stamp:
             del self._pending[key]
         if key not in self.links:
-            return CycleOutcome(None, tx)
+            return False
         if stamp < self.link_stamps.get(key, -math.inf):
-            return CycleOutcome(None, tx)  # a deletion heard again (history) after the link was measured anew
+            return False  # a deletion heard again (history) after the link was measured anew
         lk = self.links.pop(key)
         self.link_stamps.pop(key, None)
         self.relaxer.remove_link(a, b)
         tx.deleted_links.append((lk.from_id, lk.to_id))
-        return self._cycle(stamp, tx)
+        return True
 
     def anchor(self, x_m: float, y_m: float) -> tuple[int, float, float] | None:
         """The place a scan taken at dead-reckoned ``(x_m, y_m)`` belongs to, with the offset from it.
