@@ -27,6 +27,7 @@ from messages.types import (
     PlacePredicted,
     PlaceScan,
     Pose2,
+    RecognizerProgress,
     SonarScan,
     VelocityCommand,
 )
@@ -101,6 +102,7 @@ class ExplorerCheckpoint(msgspec.Struct, frozen=True):
     counts: dict[str, int]
     scan_heard: int = -1
     scan_due: int = -1
+    placed_tick: int = -1
 
 
 class ExplorerShell:
@@ -117,10 +119,14 @@ class ExplorerShell:
     again with the same command. Once exploration is complete every tick is answered with zero velocity.
 
     Following the relaxed map (``follow_map`` and ``wait_map``), once a map update has been heard, the
-    answer also waits for the update that holds the latest link named by the localization it uses
-    (``LocalizationBelief.link_seq``) and the latest place this shell confirmed (``MapUpdate.link_seq``,
-    ``confirmed_seq``), at most ``map_timeout_s`` (counted in ``map_timeouts``): the in-process loop
-    moves the places before the explorer's next step.
+    answer also waits for the map as the in-process loop has it at the explorer's step of tick ``k``:
+    when the recognizer has work at tick ``k`` (the tick's scan, or the place events of tick ``k - 1``),
+    for its ``RecognizerProgress`` of tick ``k``; then for the update that holds the latest link it
+    names (or the latest link a localization of an earlier scan names) and the latest place
+    confirmation and place and link deletion this shell published (``MapUpdate.link_seq``,
+    ``confirmed_seq``, ``deleted_seq``, ``links_deleted_seq``); at most ``map_timeout_s`` (counted in
+    ``map_timeouts``). No later update can come before the answer: the recognizer's next work waits
+    for this tick's command. So the answer is a function of the seed, as in the loop.
     """
 
     def __init__(self, params: ExplorerNodeParams, publish, clock=time.monotonic, save=None,
@@ -145,7 +151,11 @@ class ExplorerShell:
         self._status_stamp = -math.inf
         self.output: ExplorerOutput | None = None
         self._map_seen = False  # a relaxer publishes
-        self._map_heard = [-1, -1]  # the highest link and place-confirmation seqs a map update named
+        self._map_heard = [-1, -1, -1, -1]  # the highest link, place confirmation, place deletion and link
+        # deletion seqs a map update named
+        self._progress_tick = -1  # the latest tick the recognizer said its work of was done
+        self._progress_link = -1  # ... and the latest link then
+        self._placed_tick = -1  # the latest tick this shell confirmed or deleted a place at
         self.counts = {"ticks": 0, "repeats": 0, "skipped_poses": 0, "scans": 0, "fixes": 0,
                        "localization_timeouts": 0, "map_updates": 0, "events": 0, "complete": 0,
                        "late_scans": 0, "scan_timeouts": 0, "relocalisations": 0, "map_timeouts": 0}
@@ -158,7 +168,7 @@ class ExplorerShell:
             core=self.core.snapshot(), last_tick=self.last_tick, sensor_tick=self._sensor_tick,
             last_cmd=self._last_cmd, seq=dict(self._seq), status=self._status, status_stamp=self._status_stamp,
             scans=dict(self._scans), beliefs=dict(self._beliefs), counts=dict(self.counts),
-            scan_heard=self._scan_heard, scan_due=self._scan_due)
+            scan_heard=self._scan_heard, scan_due=self._scan_due, placed_tick=self._placed_tick)
 
     def resume(self, ckpt: ExplorerCheckpoint) -> None:
         """Go on from a checkpoint: the ticks it answered are answered, its events published."""
@@ -168,6 +178,7 @@ class ExplorerShell:
         self._status = tuple(ckpt.status) if ckpt.status is not None else None
         self._scans, self._beliefs = dict(ckpt.scans), dict(ckpt.beliefs)
         self._scan_heard, self._scan_due = ckpt.scan_heard, ckpt.scan_due
+        self._placed_tick = ckpt.placed_tick
         self.counts.update(ckpt.counts)
 
     def _next_seq(self, name: str) -> int:
@@ -240,17 +251,32 @@ class ExplorerShell:
         if self.params.follow_map and msg.changed:
             self.core.move_places({p.place_id: (p.x_m, p.y_m) for p in msg.changed})
         self._map_seen = True
-        self._map_heard = [max(self._map_heard[0], msg.link_seq), max(self._map_heard[1], msg.confirmed_seq)]
+        named = (msg.link_seq, msg.confirmed_seq, msg.deleted_seq, msg.links_deleted_seq)
+        self._map_heard = [max(h, n) for h, n in zip(self._map_heard, named)]
         self.try_answer()
 
-    def _map_due(self, earlier: list[int]) -> list[int] | None:
-        """The link and place-confirmation seqs whose map updates the answer after the scans of ``earlier``
-        ticks waits for; None when it waits for none."""
+    def on_progress(self, msg: RecognizerProgress) -> None:
+        if msg.tick >= self._progress_tick:
+            self._progress_tick, self._progress_link = msg.tick, max(self._progress_link, msg.link_seq)
+        self.try_answer()
+
+    def _following(self) -> bool:
         p = self.params
-        if not (p.follow_map and p.wait_map and self._map_seen):
+        return p.follow_map and p.wait_map and self._map_seen
+
+    def _recognizer_due(self, tick: int) -> bool:
+        """Whether the recognizer has work at ``tick`` whose progress the answer has not heard."""
+        work = tick in self._scans or (self._placed_tick >= 0 and self._placed_tick == tick - 1)
+        return self._following() and work and self._progress_tick < tick
+
+    def _map_due(self, earlier: list[int]) -> list[int] | None:
+        """The link, place confirmation, place deletion and link deletion seqs whose map updates the
+        answer after the scans of ``earlier`` ticks waits for; None when it waits for none."""
+        if not self._following():
             return None
-        links = max((self._beliefs[t].link_seq for t in earlier if t in self._beliefs), default=-1)
-        return [links, self._seq.get("places_confirmed", 0) - 1]
+        links = max([self._progress_link] + [self._beliefs[t].link_seq for t in earlier if t in self._beliefs])
+        return [links, self._seq.get("places_confirmed", 0) - 1, self._seq.get("places_deleted", 0) - 1,
+                self._seq.get("links_deleted", 0) - 1]
 
     def check_timeout(self) -> None:
         """Called periodically: answer a pose whose localization is overdue."""
@@ -281,14 +307,19 @@ class ExplorerShell:
             self.counts["localization_timeouts"] += len(missing)
             log.warning("%s: no localization for the scan of tick %d within %.1f s: answering tick %d without it",
                         SERVICE, missing[-1], self.params.localization_timeout_s, tick)
+        recognizer_due = self._recognizer_due(tick)
         due = self._map_due(earlier)
-        if due is not None and any(h < d for h, d in zip(self._map_heard, due)):
+        if recognizer_due or (due is not None and any(h < d for h, d in zip(self._map_heard, due))):
             if waited < self.params.map_timeout_s:
                 return
-            self.counts["map_timeouts"] += 1  # the relaxer is slow or gone: answer without its update
-            log.warning("%s: no map update for link %d and place confirmation %d within %.1f s: answering tick %d "
-                        "without it", SERVICE, *due, self.params.map_timeout_s, tick)
-            self._map_heard = [max(h, d) for h, d in zip(self._map_heard, due)]
+            self.counts["map_timeouts"] += 1  # the recognizer or the relaxer is slow or gone: answer without
+            log.warning("%s: %s within %.1f s: answering tick %d without it", SERVICE,
+                        "the recognizer's work of the tick not done" if recognizer_due else
+                        "no map update for link %d and place events %d, %d, %d" % tuple(due),
+                        self.params.map_timeout_s, tick)
+            self._progress_tick = max(self._progress_tick, tick)
+            if due is not None:
+                self._map_heard = [max(h, d) for h, d in zip(self._map_heard, due)]
         scan = self._scans[earlier[-1]] if earlier else None
         with_fix = [t for t in earlier if t in self._beliefs]
         fix = PlaceFix.from_message(self._beliefs[with_fix[-1]]) if with_fix else None
@@ -309,6 +340,8 @@ class ExplorerShell:
         for ev in out.events:
             msg_type, name = _EVENT_TYPES[type(ev)]
             events.append((name, msg_type(stamp=pose.stamp, seq=self._next_seq(name), **asdict(ev))))
+            if name in ("places_confirmed", "places_deleted"):
+                self._placed_tick = tick  # the recognizer applies it at the next tick
         cmd = (0.0, 0.0) if out.status.complete else (out.command.v_mps, out.command.omega_radps)
         self.counts["ticks"] += 1
         self.counts["events"] += len(events)
@@ -342,6 +375,7 @@ class ExplorerShell:
         return VelocityCommand(stamp=stamp, seq=self._next_seq("cmd_velocity"), v_mps=v, omega_radps=w, tick=tick,
                                confirmed_seq=self._seq.get("places_confirmed", 0) - 1,
                                deleted_seq=self._seq.get("places_deleted", 0) - 1,
+                               links_deleted_seq=self._seq.get("links_deleted", 0) - 1,
                                relocalisations=self.core.relocalisations)
 
 
@@ -398,6 +432,7 @@ def run(session: zenoh.Session, params: ExplorerNodeParams = ExplorerNodeParams(
 
         node.subscribe(topics.dr_pose(robot), DeadReckonedPose, on_dr_pose)
         node.subscribe(topics.sonar(robot), SonarScan, shell.on_sonar)
+        node.subscribe(topics.recognizer_progress(robot), RecognizerProgress, shell.on_progress)
         node.subscribe(topics.odometry(robot), OdometryStep, shell.on_odometry)
         node.subscribe(topics.localization(robot), LocalizationBelief, shell.on_localization)
         node.subscribe(topics.map_update(robot), MapUpdate, shell.on_map_update)

@@ -26,6 +26,7 @@ from messages.types import (
     OdometryStep,
     PlaceConfirmed,
     PlaceDeleted,
+    RecognizerProgress,
     SonarScan,
     VelocityCommand,
 )
@@ -168,15 +169,24 @@ class RecognizerShell:
 
     - following the relaxed map (``follow_map`` and ``wait_map``), once a map update has been heard:
       after a link is published, the next scan or event waits for the update that names it
-      (``MapUpdate.link_seq``), as the in-process loop moves the places before its next step.
+      (``MapUpdate.link_seq``), and the work of tick ``j`` waits for the update that holds the
+      explorer's place and link events named by the command of tick ``j - 1`` (``confirmed_seq``,
+      ``deleted_seq``, ``links_deleted_seq``), as the in-process loop moves the places before its next
+      step.
+
+    Once the work of a tick is done (the events of the tick before, the tick's scan), a
+    ``RecognizerProgress`` names the tick and the latest link: the explorer answers the tick after it.
 
     Without commands (nobody drives in lockstep) or sensors, an input waits at most
     ``order_timeout_s`` of wall time. Inputs that miss their turn are applied at once (counted).
     """
 
     def __init__(self, params: PlaceRecognizerNodeParams,
-                 publish_belief, publish_link, clock=time.monotonic, files: RecognizerFiles | None = None) -> None:
-        self.params = params  # publish_belief, publish_link: one message each
+                 publish_belief, publish_link, clock=time.monotonic, files: RecognizerFiles | None = None,
+                 publish_progress=None) -> None:
+        self.params = params  # publish_belief, publish_link, publish_progress: one message each
+        self._publish_progress = publish_progress
+        self._progress_seq = 0
         self._files = files or RecognizerFiles(None, None)
         self._applied: set[int] = set()  # places confirmed (id) or deleted (-1 - id) already applied
         self.core = PlaceRecognizer(params.core)
@@ -193,6 +203,9 @@ class RecognizerShell:
         self._scan_heard = self._scan_due = -1  # the highest seq of a scan heard / named by an odometry step
         self._event_heard = [-1, -1]  # the highest seqs of places confirmed and deleted heard
         self._event_due = [-1, -1]  # ... named by a velocity command
+        self._links_deleted_due = -1  # the highest seq of a link deletion named by a velocity command
+        self._map_events = [-1, -1, -1]  # the explorer's confirmations, deletions, link deletions a map update
+        # named as applied
         self._event_applied = [-1, -1]  # ... applied
         self._relocalise: list[tuple[int, int]] = []  # (tick, count) of each rise of the explorer's requests
         self._relocalised = 0  # the count acted on
@@ -253,6 +266,7 @@ class RecognizerShell:
         self._scan_heard = self._scan_due = self._last_scan_seq
         self._event_applied = list(ckpt.event_seqs)
         self._event_heard, self._event_due = list(ckpt.event_seqs), list(ckpt.event_seqs)
+        self._map_events = [*ckpt.event_seqs, -1]  # as for the links: not waited for after a restart
         self._relocalised, self._relocalise = ckpt.relocalisations, []
 
     def _commit(self, links: list[LinkMeasured]) -> None:
@@ -297,6 +311,7 @@ class RecognizerShell:
     def on_command(self, msg: VelocityCommand) -> None:
         self._cmd_tick = max(self._cmd_tick, msg.tick)
         self._event_due = [max(self._event_due[0], msg.confirmed_seq), max(self._event_due[1], msg.deleted_seq)]
+        self._links_deleted_due = max(self._links_deleted_due, msg.links_deleted_seq)
         if msg.relocalisations > max(self._relocalised, self._relocalise[-1][1] if self._relocalise else 0):
             self._relocalise.append((msg.tick, msg.relocalisations))
         self.drain()
@@ -327,12 +342,20 @@ class RecognizerShell:
             self.core.move_places({p.place_id: (p.x_m, p.y_m) for p in msg.changed})
         self._map_seen = True
         self._map_heard = max(self._map_heard, msg.link_seq)
+        self._map_events = [max(h, n) for h, n in
+                            zip(self._map_events, (msg.confirmed_seq, msg.deleted_seq, msg.links_deleted_seq))]
         self.drain()
 
+    def _events_named(self) -> list[int]:
+        return [*self._event_due, self._links_deleted_due]
+
     def _map_in(self) -> bool:
-        """Whether the map updates of the links published so far are in (or not waited for)."""
+        """Whether the map updates of the links published so far, and of the explorer's events the
+        commands named, are in (or not waited for)."""
         p = self.params
-        return not (p.follow_map and p.wait_map and self._map_seen) or self._map_heard >= self._link_seq - 1
+        return not (p.follow_map and p.wait_map and self._map_seen) or (
+            self._map_heard >= self._link_seq - 1
+            and all(h >= n for h, n in zip(self._map_events, self._events_named())))
 
     def drain(self) -> None:
         """Apply every input whose turn has come (also called periodically, for the timeouts)."""
@@ -345,13 +368,16 @@ class RecognizerShell:
                 scan_first = bool(self._scans) and self._tick(self._scans[0][0].stamp) <= j
                 if not scan_first:
                     ready = (self._sensor_tick >= j + 1 and self._scan_heard >= self._scan_due and bool(self._stamps)
-                             and self._stamps[-1] >= ev.stamp - 1e-9)
+                             and self._stamps[-1] >= ev.stamp - 1e-9 and (self._cmd_tick >= j or self._cmd_tick < 0))
                     if (ready and self._map_in()) or now - max(since, self._linked) >= timeout:
                         self.counts["order_timeouts"] += not ready
                         self._give_up_waiting()
                         self._events.pop(0)
                         self._done_tick = max(self._done_tick, j)
                         self._apply_event(ev)
+                        if not (self._events and self._tick(self._events[0][0].stamp) == j) and not any(
+                                self._tick(sc.stamp) == j + 1 for sc, _ in self._scans):
+                            self._progress(j + 1)  # the tick after the events has no scan: its work is done
                         continue
             if self._scans:
                 scan, since = self._scans[0]
@@ -368,8 +394,15 @@ class RecognizerShell:
                     self._done_tick = max(self._done_tick, t)
                     self._relocalise_before(t)
                     self._step(scan)
+                    self._progress(t)
                     continue
             return
+
+    def _progress(self, tick: int) -> None:
+        if self._publish_progress is not None:
+            self._publish_progress(RecognizerProgress(stamp=tick * self.params.dt_s, seq=self._progress_seq, tick=tick,
+                                                      link_seq=self._link_seq - 1))
+            self._progress_seq += 1
 
     def _give_up_waiting(self) -> None:
         """After an order timeout: what was named and not heard is lost (a restart), not late."""
@@ -378,11 +411,12 @@ class RecognizerShell:
                         "without them", SERVICE, self._scan_due, self._event_due, self.params.order_timeout_s)
         if not self._map_in():
             self.counts["map_timeouts"] += 1
-            log.warning("%s: no map update for link %d within %.1f s; going on without it", SERVICE,
-                        self._link_seq - 1, self.params.order_timeout_s)
+            log.warning("%s: no map update for link %d and the explorer's events %s within %.1f s; going on without "
+                        "it", SERVICE, self._link_seq - 1, self._events_named(), self.params.order_timeout_s)
         self._scan_heard = max(self._scan_heard, self._scan_due)
         self._event_heard = [max(h, d) for h, d in zip(self._event_heard, self._event_due)]
         self._map_heard = max(self._map_heard, self._link_seq - 1)
+        self._map_events = [max(h, n) for h, n in zip(self._map_events, self._events_named())]
 
     def _relocalise_before(self, tick: int) -> None:
         """Act on the explorer's requests to relocalise named by the commands of ticks before ``tick``
@@ -478,8 +512,9 @@ def run(session: zenoh.Session, params: PlaceRecognizerNodeParams = PlaceRecogni
     with Node(session, SERVICE, robot=robot) as node:
         pub_belief = node.publisher(topics.localization(robot), LocalizationBelief)
         pub_link = node.publisher(topics.links_measured(robot), LinkMeasured, history=topics.MAP_EVENT_HISTORY)
+        pub_progress = node.publisher(topics.recognizer_progress(robot), RecognizerProgress)
         files = RecognizerFiles(params.state_path, params.links_log)
-        shell = RecognizerShell(params, pub_belief.put, pub_link.put, files=files)
+        shell = RecognizerShell(params, pub_belief.put, pub_link.put, files=files, publish_progress=pub_progress.put)
         saved = files.load()
         if saved is not None:  # a restart within the run: the checkpoint wins over --resume
             shell.resume(*saved)

@@ -68,6 +68,26 @@ def test_run_writes_every_output(tmp_path):
         assert "Traceback" not in log.read_text(), log.read_text()[-2000:]
 
 
+def test_a_run_on_the_bus_is_the_in_process_loop(tmp_path):
+    """Six processes exchanging messages in whatever order zenoh delivers them measure the same links,
+    to the last bit, as the in-process loop stepping the same cores in its fixed order: a run is a
+    function of the world, the parameters and the seed."""
+    from services.launch.inprocess import InProcessParams, run_world
+
+    out = tmp_path / "run"
+    done = _run(out, "--world", "orebro-office", "--seed", "2", "--max-sim-time", "300")
+    assert done.returncode == 0, done.stderr[-3000:]
+    bus = [json.loads(line) for line in (out / "links_measured.jsonl").read_text().splitlines()]
+    loop = run_world("orebro-office", InProcessParams(seed=2, max_sim_time_s=300.0))
+    logs = "\n".join(line for log in (out / "logs").iterdir() for line in log.read_text().splitlines()
+                     if "timeouts" in line or "WARNING" in line)
+    assert len(loop.links) > 50, "too short a run to say anything"
+    assert [(b["from_id"], b["to_id"], b["d_m"], b["theta_rad"], b["steps"]) for b in bus] == [
+        (lk.from_id, lk.to_id, lk.d_m, lk.theta_rad, lk.steps) for lk in loop.links], logs[-3000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["places"] == len(loop.places)
+
+
 def _stored_places(store: Path) -> int:
     """Places the relaxer has stored so far (read-only; 0 while the store does not exist yet)."""
     if not store.exists():

@@ -1,18 +1,19 @@
 """The explorer's and the recognizer's shells wait for what a message names, not for its order.
 
 zenoh keeps the order of one key's messages, not across keys: a scan can come after the odometry
-step of a later tick, a place event after the velocity command sent after it. The odometry step names
-the latest scan before it (``sonar_seq``) and the command the latest place events (``confirmed_seq``,
-``deleted_seq``); these tests hand the shells their inputs in the wrong order and check that the
-outcome is the one of the right order.
+step of its tick, a place event after the velocity command sent after it. The odometry step names
+the latest scan of its tick or before (``sonar_seq``) and the command the latest place events
+(``confirmed_seq``, ``deleted_seq``, ``links_deleted_seq``); these tests hand the shells their inputs
+in the wrong order and check that the outcome is the one of the right order.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from msgspec.structs import replace as msgspec_replace
 
 from messages.types import (DeadReckonedPose, LocalizationBelief, MapUpdate, NoiseParams, PlaceConfirmed,
-                            PlacePosition, VelocityCommand)
+                            PlacePosition, RecognizerProgress, VelocityCommand)
 from services.dead_reckoning import core as dr_core
 from services.explorer.node import ExplorerNodeParams, ExplorerShell
 from services.place_recognizer.node import PlaceRecognizerNodeParams, RecognizerShell
@@ -45,10 +46,10 @@ def frames(n: int):
     return out
 
 
-def test_odometry_names_the_scans_of_the_ticks_before_it():
+def test_odometry_names_the_scan_of_its_own_tick():
     fs = frames(4)
     for (before, _), (frame, _) in zip(fs, fs[1:]):
-        assert frame.odometry.sonar_seq == before.sonar.seq == frame.sonar.seq - 1
+        assert frame.odometry.sonar_seq == frame.sonar.seq == before.sonar.seq + 1
 
 
 def explorer(clock: Clock) -> tuple[ExplorerShell, list]:
@@ -69,17 +70,18 @@ def test_explorer_waits_for_the_scan_an_odometry_step_names():
     shell.on_dr_pose(p0)
     assert [c.tick for c in commands(sent)] == [0]
     shell.on_sonar(f0.sonar)
-    # tick 1 in order; the scan of tick 1 comes after the odometry step and the pose of tick 2
+    # tick 1: the scan comes after the odometry step and the pose that name it
     shell.on_odometry(f1.odometry)
     shell.on_dr_pose(p1)
-    assert [c.tick for c in commands(sent)] == [0, 1]
-    assert shell.counts["scans"] == 1
-    shell.on_odometry(f2.odometry)
-    shell.on_dr_pose(p2)
     clock.t += 1.0
     shell.check_timeout()
-    assert [c.tick for c in commands(sent)] == [0, 1], "tick 2 answered before the scan of tick 1 was heard"
+    assert [c.tick for c in commands(sent)] == [0], "tick 1 answered before the scan of tick 1 was heard"
     shell.on_sonar(f1.sonar)
+    assert [c.tick for c in commands(sent)] == [0, 1]
+    assert shell.counts["scans"] == 1  # tick 1 is answered with the scan of tick 0
+    shell.on_sonar(f2.sonar)  # tick 2 in order
+    shell.on_odometry(f2.odometry)
+    shell.on_dr_pose(p2)
     assert [c.tick for c in commands(sent)] == [0, 1, 2]
     assert shell.counts["scans"] == 2 and shell.counts["late_scans"] == 0 and shell.counts["scan_timeouts"] == 0
 
@@ -89,14 +91,15 @@ def test_explorer_stops_waiting_for_a_scan_lost_for_good():
     (f0, p0), (f1, p1), (f2, p2), (f3, p3) = frames(4)
     shell, sent = explorer(clock)
     shell.on_dr_pose(p0)
-    shell.on_odometry(f1.odometry)  # the scan of tick 0 never comes
+    shell.on_odometry(f1.odometry)  # the scans of ticks 0 and 1 never come
     shell.on_dr_pose(p1)
     assert [c.tick for c in commands(sent)] == [0]
     clock.t += 2.5
     shell.check_timeout()
     assert [c.tick for c in commands(sent)] == [0, 1]
     assert shell.counts["scan_timeouts"] == 1 and shell.counts["scans"] == 0
-    shell.on_sonar(f1.sonar)  # from here on in order: no wait
+    shell.on_sonar(f1.sonar)  # late after all: it serves tick 2; from here on in order, no wait
+    shell.on_sonar(f2.sonar)
     shell.on_odometry(f2.odometry)
     shell.on_dr_pose(p2)
     assert [c.tick for c in commands(sent)] == [0, 1, 2]
@@ -229,6 +232,7 @@ def test_explorer_command_carries_its_count_of_relocalisation_requests():
     shell.core.relocalisations = 2  # as _failed leaves it after two held failures
     shell.on_odometry(f1.odometry)
     shell.on_sonar(f0.sonar)
+    shell.on_sonar(f1.sonar)
     shell.on_dr_pose(p1)
     assert [c.relocalisations for c in commands(sent)] == [0, 2]
 
@@ -260,6 +264,9 @@ def drive_to_a_second_place(clock: Clock, *, map_heard: bool):
     shell.on_explorer_event(PlaceConfirmed(stamp=p40.stamp, seq=1, place_id=8, x_m=p40.compass.x_m,
                                            y_m=p40.compass.y_m))
     feed_tick(shell, *fs[41])
+    if map_heard:
+        assert not links, "place 8 applied before the relaxer had it"
+        shell.on_map_update(map_update(1, link_seq=-1, confirmed_seq=1))  # the relaxer's update for place 8
     return shell, beliefs, links
 
 
@@ -268,9 +275,10 @@ def test_recognizer_waits_for_the_map_update_that_holds_its_link():
     shell, beliefs, links = drive_to_a_second_place(clock, map_heard=True)
     assert [(lk.from_id, lk.to_id, lk.seq) for lk in links] == [(7, 8, 0)]
     assert len(beliefs) == 41, "the scan of tick 41 was localised before the map update of the link before it"
-    shell.on_map_update(map_update(1, link_seq=-1, confirmed_seq=1))  # an update that does not hold it yet
+    shell.on_map_update(map_update(2, link_seq=-1, confirmed_seq=1))  # an update that does not hold it yet
     assert len(beliefs) == 41
-    shell.on_map_update(map_update(2, link_seq=0, changed=[PlacePosition(place_id=8, x_m=5.0, y_m=5.0)]))
+    shell.on_map_update(map_update(3, link_seq=0, confirmed_seq=1,
+                                   changed=[PlacePosition(place_id=8, x_m=5.0, y_m=5.0)]))
     assert len(beliefs) == 42 and beliefs[-1].link_seq == 0
     assert shell.core.belief.centres[shell.core.belief.index(8)].tolist() == [5.0, 5.0]
     assert shell.counts["map_timeouts"] == 0 == shell.counts["order_timeouts"]
@@ -309,23 +317,44 @@ def map_following_explorer(clock: Clock, first) -> tuple[ExplorerShell, list]:
     return shell, sent
 
 
-def test_explorer_waits_for_the_map_update_of_the_links_its_localization_names():
+def test_explorer_waits_for_the_recognizer_and_the_map_update_of_the_links_it_names():
     clock = Clock()
     (f0, p0), (f1, p1), (f2, p2) = frames(3)
     shell, sent = map_following_explorer(clock, ((f0, p0), -1))
+    shell.on_sonar(f1.sonar)
     shell.on_odometry(f1.odometry)
     shell.on_dr_pose(p1)
-    assert [c.tick for c in commands(sent)] == [0, 1]
-    shell.on_sonar(f1.sonar)
+    assert [c.tick for c in commands(sent)] == [0], "tick 1 answered before the recognizer's work of tick 1"
     shell.on_localization(belief_of(p1, 1, link_seq=3))  # the recognizer published links 0-3 by then
+    shell.on_progress(RecognizerProgress(stamp=p1.stamp, seq=0, tick=1, link_seq=3))
+    assert [c.tick for c in commands(sent)] == [0], "tick 1 answered before the map held link 3"
+    shell.on_map_update(map_update(1, link_seq=3))
+    assert [c.tick for c in commands(sent)] == [0, 1] and shell.counts["map_timeouts"] == 0
+    confirmed = [m.seq for name, m in sent if name == "places_confirmed"]
+    assert confirmed == [0]  # the first place, at tick 1: the recognizer applies it at tick 2
+    shell.on_sonar(f2.sonar)
     shell.on_odometry(f2.odometry)
     shell.on_dr_pose(p2)
-    assert [c.tick for c in commands(sent)] == [0, 1], "tick 2 answered before the map held link 3"
-    confirmed = [m.seq for name, m in sent if name == "places_confirmed"]
-    assert confirmed == [0]  # the first place, at the start
-    shell.on_map_update(map_update(1, link_seq=3))
+    assert [c.tick for c in commands(sent)] == [0, 1], "tick 2 answered before the recognizer's work of tick 2"
+    shell.on_progress(RecognizerProgress(stamp=p2.stamp, seq=1, tick=2, link_seq=3))
     assert [c.tick for c in commands(sent)] == [0, 1], "tick 2 answered before the map held the place it confirmed"
     shell.on_map_update(map_update(2, link_seq=3, confirmed_seq=0))
+    assert [c.tick for c in commands(sent)] == [0, 1, 2] and shell.counts["map_timeouts"] == 0
+
+
+def test_explorer_answers_a_tick_without_a_scan_or_a_place_event_before_it_at_once():
+    clock = Clock()
+    fs = frames(3)
+    sent: list = []
+    shell = ExplorerShell(ExplorerNodeParams(localization_timeout_s=2.0, map_timeout_s=0.5),
+                          lambda name, msg: sent.append((name, msg)), clock=clock)
+    shell.on_map_update(map_update(0, link_seq=-1, confirmed_seq=0))
+    shell.on_dr_pose(fs[0][1])  # confirms place 0
+    shell.on_progress(RecognizerProgress(stamp=0.1, seq=0, tick=1, link_seq=-1))
+    for j in (1, 2):
+        f, p = fs[j]
+        shell.on_odometry(msgspec_replace(f.odometry, sonar_seq=-1))  # no scan at these ticks
+        shell.on_dr_pose(p)
     assert [c.tick for c in commands(sent)] == [0, 1, 2] and shell.counts["map_timeouts"] == 0
 
 
@@ -333,9 +362,31 @@ def test_explorer_answers_without_a_map_update_that_does_not_come():
     clock = Clock()
     (f0, p0), (f1, p1) = frames(2)
     shell, sent = map_following_explorer(clock, ((f0, p0), 0))
+    shell.on_sonar(f1.sonar)
     shell.on_odometry(f1.odometry)
     shell.on_dr_pose(p1)
     assert [c.tick for c in commands(sent)] == [0]
     clock.t += 0.6
     shell.check_timeout()
     assert [c.tick for c in commands(sent)] == [0, 1] and shell.counts["map_timeouts"] == 1
+
+
+def test_recognizer_says_when_the_work_of_a_tick_is_done():
+    clock = Clock()
+    (f0, p0), (f1, p1), (f2, p2) = frames(3)
+    progress: list = []
+    beliefs: list = []
+    shell = RecognizerShell(PlaceRecognizerNodeParams(order_timeout_s=0.5), beliefs.append, lambda msg: None,
+                            clock=clock, publish_progress=progress.append)
+    feed_tick(shell, f0, p0)
+    assert [p.tick for p in progress] == [0]  # after the scan of tick 0
+    shell.on_command(command(p0, 0, confirmed_seq=0))
+    shell.on_explorer_event(confirmation(p0))
+    # tick 1 has no scan: the work of tick 1 is the place event of tick 0
+    shell.on_odometry(msgspec_replace(f1.odometry, sonar_seq=f0.sonar.seq))
+    shell.on_dr_pose(p1)
+    assert shell.counts["places"] == 1 and [p.tick for p in progress] == [0, 1]
+    shell.on_command(command(p1, 1, confirmed_seq=0))
+    feed_tick(shell, f2, p2)
+    assert [p.tick for p in progress] == [0, 1, 2] and len(beliefs) == 2
+    assert shell.counts["order_timeouts"] == 0
