@@ -188,6 +188,7 @@ class InProcessRun:
         r.relocalisations = self.explorer.relocalisations
         r.predicted_left = sum(1 for q in self.explorer.places.values() if not q.confirmed)
         if self.online is not None:
+            self.online.settle()  # as the relaxer service does once the events stop: the map at its minimum
             r.relaxed = self.online.coordinates()
             n = self.online.relaxer.noise
             r.noise = (n.s_dd_m2, n.s_aa_rad2, n.s_da_m_rad)

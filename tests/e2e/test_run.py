@@ -70,8 +70,8 @@ def test_run_writes_every_output(tmp_path):
 
 def test_a_run_on_the_bus_is_the_in_process_loop(tmp_path):
     """Six processes exchanging messages in whatever order zenoh delivers them measure the same links,
-    to the last bit, as the in-process loop stepping the same cores in its fixed order: a run is a
-    function of the world, the parameters and the seed."""
+    to the last bit, as the in-process loop stepping the same cores in its fixed order, and end with
+    the same map: a run is a function of the world, the parameters and the seed."""
     from services.launch.inprocess import InProcessParams, run_world
 
     out = tmp_path / "run"
@@ -86,6 +86,8 @@ def test_a_run_on_the_bus_is_the_in_process_loop(tmp_path):
         (lk.from_id, lk.to_id, lk.d_m, lk.theta_rad, lk.steps) for lk in loop.links], logs[-3000:]
     summary = json.loads((out / "summary.json").read_text())
     assert summary["places"] == len(loop.places)
+    written = {p["id"]: (p["x"], p["y"]) for p in json.loads((out / "map.json").read_text())["places"]}
+    assert written == loop.relaxed  # and the map at rest is the same minimum of those links
 
 
 def _stored_places(store: Path) -> int:
