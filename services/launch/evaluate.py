@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -45,3 +46,42 @@ def ate_m(estimate: Mapping[int, tuple[float, float]], truth: Mapping[int, tuple
     """
     err = np.array(list(place_errors_m(estimate, truth, first_id).values()))
     return float(np.sqrt(np.mean(err**2))) if err.size else float("nan")
+
+
+@dataclass(frozen=True)
+class Similarity:
+    """The turn and the size of a whole map about its first place, and the error left without them."""
+
+    scale: float  # the map's size over the truth's (above 1: the map is too large)
+    turn_rad: float  # the map's rotation from the truth's frame, counter-clockwise
+    residual_m: float  # RMS error of the places once the map is turned back and rescaled about the first place
+
+
+def similarity_about(estimate: Mapping[int, tuple[float, float]], truth: Mapping[int, tuple[float, float]],
+                     first_id: int) -> Similarity | None:
+    """The least-squares turn and scale of ``estimate`` against ``truth`` about place ``first_id``.
+
+    With the first place at the origin of both maps and places as complex numbers ``e`` and ``t``,
+    the factor ``a`` minimising ``sum |a e - t|^2`` is ``(e^H t) / (e^H e)``: the map is ``1/|a|``
+    times the true size and turned by ``-arg a``. A map scaled by its odometry's distance error, or
+    turned by a compass bias, shows it here; what is left in ``residual_m`` are the links' own errors.
+    None when fewer than two places can be compared or they all sit on the first.
+
+    Examples
+    --------
+    >>> s = similarity_about({0: (0.0, 0.0), 1: (0.0, 2.0)}, {0: (1.0, 1.0), 1: (2.0, 1.0)}, 0)
+    >>> round(s.scale, 6), round(float(np.degrees(s.turn_rad)), 6), round(s.residual_m, 6)
+    (2.0, 90.0, 0.0)
+    """
+    ids = sorted(set(estimate) & set(truth))
+    if len(ids) < 2 or first_id not in estimate or first_id not in truth:
+        return None
+    est = np.array([estimate[i] for i in ids], dtype=float) - np.asarray(estimate[first_id], dtype=float)
+    tru = np.array([truth[i] for i in ids], dtype=float) - np.asarray(truth[first_id], dtype=float)
+    ze, zt = est[:, 0] + 1j * est[:, 1], tru[:, 0] + 1j * tru[:, 1]
+    norm = float(np.vdot(ze, ze).real)
+    if norm == 0.0 or not np.any(zt):
+        return None
+    a = np.vdot(ze, zt) / norm
+    return Similarity(scale=float(1.0 / abs(a)), turn_rad=float(-np.angle(a)),
+                      residual_m=float(np.sqrt(np.mean(np.abs(a * ze - zt) ** 2))))

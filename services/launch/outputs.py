@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,7 @@ from PIL import Image
 
 from messages.types import MapGraph, MapStats, OccupancyGrid
 from services.common.files import atomic_write
+from services.launch.evaluate import Similarity, ate_m, similarity_about
 
 log = logging.getLogger(__name__)
 
@@ -35,8 +37,10 @@ def write_grid(grid: OccupancyGrid, png: Path, yaml: Path | None) -> None:
 
 def summary(*, world: str, seed: int, graph: MapGraph, stats: MapStats, links_measured: int, links_lost: int,
             links_inferred: int, sim_time_s: float, wall_time_s: float, complete: bool,
-            ate_relaxed_m: float, ate_dead_reckoning_m: float, restarts: dict[str, int], parts: int = 1) -> dict:
-    """summary.json's content (architecture.md), with loss made visible (``links_lost``)."""
+            ate_relaxed_m: float, ate_dead_reckoning_m: float, restarts: dict[str, int], parts: int = 1,
+            similarity: Similarity | None = None) -> dict:
+    """summary.json's content (architecture.md), with loss made visible (``links_lost``) and the relaxed
+    map's error split into its turn and scale about the first place and the rest (``similarity``)."""
     return {
         "world": world,
         "seed": seed,
@@ -52,6 +56,9 @@ def summary(*, world: str, seed: int, graph: MapGraph, stats: MapStats, links_me
         "energy": graph.energy,
         "ate_relaxed_m": None if np.isnan(ate_relaxed_m) else round(ate_relaxed_m, 4),
         "ate_dead_reckoning_m": None if np.isnan(ate_dead_reckoning_m) else round(ate_dead_reckoning_m, 4),
+        "map_scale": None if similarity is None else round(similarity.scale, 5),
+        "map_turn_deg": None if similarity is None else round(math.degrees(similarity.turn_rad), 3),
+        "ate_relaxed_similarity_m": None if similarity is None else round(similarity.residual_m, 4),
         "iterations": stats.iterations,
         "updates": stats.updates,
         "cycle_ms_mean": round(stats.cycle_ms_mean, 3),
@@ -111,7 +118,6 @@ def write_outputs(session, robot: str, out: Path, monitor, *, world: str, seed: 
                   restarts: dict[str, int], parts: int = 1, grid_resolution_m: float = 0.15) -> dict:
     """Ask the relaxer for the final map and write every output file of the run; returns the summary."""
     from messages import topics
-    from services.launch.evaluate import ate_m
     from services.runtime import query
 
     graph = query(session, topics.map_graph(robot), type_=MapGraph, timeout_s=30)
@@ -134,7 +140,7 @@ def write_outputs(session, robot: str, out: Path, monitor, *, world: str, seed: 
                      wall_time_s=wall_time_s, complete=bool(monitor.progress()["complete"]),
                      ate_relaxed_m=ate_m(relaxed, truth, first),
                      ate_dead_reckoning_m=ate_m(monitor.place_dead_reckoning(), truth, first), restarts=restarts,
-                     parts=parts)
+                     parts=parts, similarity=similarity_about(relaxed, truth, first))
     if lost:
         result["links_lost_pairs"] = sorted(lost)
     write_json(out / "truth.json", {"places": [{"id": i, "x": x, "y": y} for i, (x, y) in sorted(truth.items())],

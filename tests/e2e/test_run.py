@@ -34,8 +34,10 @@ def _check_outputs(out: Path) -> dict:
     summary = json.loads((out / "summary.json").read_text())
     for key in ("world", "seed", "places", "links_traversed", "links_inferred", "sim_time_s", "wall_time_s",
                 "exploration_complete", "energy", "ate_relaxed_m", "ate_dead_reckoning_m", "iterations",
-                "links_measured", "links_lost"):
+                "links_measured", "links_lost", "map_scale", "map_turn_deg", "ate_relaxed_similarity_m"):
         assert key in summary, key
+    assert 0.9 < summary["map_scale"] < 1.1 and abs(summary["map_turn_deg"]) < 10, summary
+    assert summary["ate_relaxed_similarity_m"] <= summary["ate_relaxed_m"]  # a turn of 0 and a scale of 1 are candidates
     m = read_map_json(out / "map.json")
     assert m.graph.n_places == summary["places"] and m.graph.n_links == summary["links_traversed"]
     g2o = read_g2o(out / "map.g2o")
