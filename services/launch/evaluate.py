@@ -7,9 +7,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
+Coordinates = Mapping[int, tuple[float, float]]
 
-def place_errors_m(estimate: Mapping[int, tuple[float, float]], truth: Mapping[int, tuple[float, float]],
-                   first_id: int) -> dict[int, float]:
+
+def _in_both(estimate: Coordinates, truth: Coordinates,
+             first_id: int) -> tuple[list[int], np.ndarray, np.ndarray] | None:
+    """The places of both maps (ids, estimated and true coordinates, rows in id order); None when there
+    is none or ``first_id`` is missing from either map."""
+    ids = sorted(set(estimate) & set(truth))
+    if not ids or first_id not in estimate or first_id not in truth:
+        return None
+    return ids, np.array([estimate[i] for i in ids], dtype=float), np.array([truth[i] for i in ids], dtype=float)
+
+
+def place_errors_m(estimate: Coordinates, truth: Coordinates, first_id: int) -> dict[int, float]:
     """Position error of each place in both maps, after removing the translation of ``first_id``.
 
     Both maps are shifted so that place ``first_id`` is at its true position (its own error is then
@@ -25,18 +36,16 @@ def place_errors_m(estimate: Mapping[int, tuple[float, float]], truth: Mapping[i
     >>> place_errors_m({0: (1.0, 1.0), 1: (2.0, 1.0)}, {0: (0.0, 0.0), 1: (1.0, 1.0)}, 0)
     {0: 0.0, 1: 1.0}
     """
-    ids = sorted(set(estimate) & set(truth))
-    if not ids or first_id not in estimate or first_id not in truth:
+    both = _in_both(estimate, truth, first_id)
+    if both is None:
         return {}
-    est = np.array([estimate[i] for i in ids], dtype=float)
-    tru = np.array([truth[i] for i in ids], dtype=float)
+    ids, est, tru = both
     shift = np.asarray(truth[first_id], dtype=float) - np.asarray(estimate[first_id], dtype=float)
     err = np.hypot(*(est + shift - tru).T)
     return {i: float(e) for i, e in zip(ids, err, strict=True)}
 
 
-def ate_m(estimate: Mapping[int, tuple[float, float]], truth: Mapping[int, tuple[float, float]],
-          first_id: int) -> float:
+def ate_m(estimate: Coordinates, truth: Coordinates, first_id: int) -> float:
     """RMS of :func:`place_errors_m`: the error of the whole map; NaN when no place can be compared.
 
     Examples
@@ -57,8 +66,7 @@ class Similarity:
     residual_m: float  # RMS error of the places once the map is turned back and rescaled about the first place
 
 
-def similarity_about(estimate: Mapping[int, tuple[float, float]], truth: Mapping[int, tuple[float, float]],
-                     first_id: int) -> Similarity | None:
+def similarity_about(estimate: Coordinates, truth: Coordinates, first_id: int) -> Similarity | None:
     """The least-squares turn and scale of ``estimate`` against ``truth`` about place ``first_id``.
 
     With the first place at the origin of both maps and places as complex numbers ``e`` and ``t``,
@@ -73,11 +81,12 @@ def similarity_about(estimate: Mapping[int, tuple[float, float]], truth: Mapping
     >>> round(s.scale, 6), round(float(np.degrees(s.turn_rad)), 6), round(s.residual_m, 6)
     (2.0, 90.0, 0.0)
     """
-    ids = sorted(set(estimate) & set(truth))
-    if len(ids) < 2 or first_id not in estimate or first_id not in truth:
+    both = _in_both(estimate, truth, first_id)
+    if both is None or len(both[0]) < 2:
         return None
-    est = np.array([estimate[i] for i in ids], dtype=float) - np.asarray(estimate[first_id], dtype=float)
-    tru = np.array([truth[i] for i in ids], dtype=float) - np.asarray(truth[first_id], dtype=float)
+    _, est, tru = both
+    est = est - np.asarray(estimate[first_id], dtype=float)
+    tru = tru - np.asarray(truth[first_id], dtype=float)
     ze, zt = est[:, 0] + 1j * est[:, 1], tru[:, 0] + 1j * tru[:, 1]
     norm = float(np.vdot(ze, ze).real)
     if norm == 0.0 or not np.any(zt):

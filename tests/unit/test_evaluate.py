@@ -32,14 +32,14 @@ def test_turn_scale_and_residual_are_the_least_squares_ones(seed):
     est = scale * (tru - tru[0]) @ np.array([[c, s], [-s, c]]) + rng.normal(0, 0.1, size=tru.shape) + (1.0, 2.0)
     est[0] = (1.0, 2.0)
     ids = [7 + 3 * k for k in range(len(tru))]
-    got = similarity_about(dict(zip(ids, map(tuple, est))), dict(zip(ids, map(tuple, tru))), ids[0])
+    estimate, truth = dict(zip(ids, map(tuple, est))), dict(zip(ids, map(tuple, tru)))
+    got = similarity_about(estimate, truth, ids[0])
     ref_scale, ref_turn, ref_res = _reference(est, tru)
     assert got.scale == pytest.approx(ref_scale, rel=1e-9)
     assert got.turn_rad == pytest.approx(ref_turn, abs=1e-9)
     assert got.residual_m == pytest.approx(ref_res, rel=1e-7)
     assert abs(got.scale - scale) < 0.01 and abs(got.turn_rad - turn) < math.radians(0.5)  # what was put in
-    anchored = ate_m(dict(zip(ids, map(tuple, est))), dict(zip(ids, map(tuple, tru))), ids[0])
-    assert got.residual_m < anchored
+    assert got.residual_m < ate_m(estimate, truth, ids[0])
 
 
 def test_an_exact_similarity_leaves_nothing():
