@@ -351,7 +351,8 @@ class PlaceRecognizer:
             self._grow_signature(self.current, placed)
         links = self._track(dr)
         if p.deviation.enabled and self.deviations.observe(self.current, dr.compass.heading_rad,
-                                                            dr.raw.heading_rad, dr.path_length_m):
+                                                            dr.raw.heading_rad, dr.path_length_m,
+                                                            *self._centre_and_offset(self.current)):
             links = links + self._recorrected({(lk.from_id, lk.to_id) for lk in links})
         valid = scores[~np.isnan(scores)]
         diag = {"best_score": float(valid.max()) if valid.size else float("nan"),
@@ -696,6 +697,17 @@ class PlaceRecognizer:
         if self._stack is not None and place_id in self._stack.row:
             k = self._stack.row[place_id]
             self._stack.x[k], self._stack.y[k] = sig.hist.x, sig.hist.y
+
+    def _centre_and_offset(self, place_id: int) -> tuple[tuple[float, float] | None, tuple[float, float] | None]:
+        """The place's centre in the recognizer's map and the robot's filtered offset from it."""
+        if place_id == NO_PLACE:
+            return None, None
+        try:
+            row = self.belief.index(place_id)
+        except KeyError:
+            return None, None
+        c, o = self.belief.centres[row], self.belief.offsets[row]
+        return (float(c[0]), float(c[1])), (float(o[0]), float(o[1]))
 
     def _at_place(self) -> int:
         b, p = self.belief, self.params

@@ -37,6 +37,10 @@ class DeviationParams:
     gate_sd: float = 4.0  # a pair of visits further than this many standard deviations from the
     # estimate (its own spread plus twice the prior's) is left out
     republish_rad: float = 1.0 * _DEG  # a link is published again when its correction moved this much
+    visit_baseline: bool = True  # a pair of visits compares the deviations where its scans were, not at
+    # the places' centres: scale its difference by how far apart the visits' mean positions lie along
+    # the centres' displacement (a visit's scans sit on the side it came from or leaves to)
+    min_baseline: float = 0.3  # that factor is held at least this (a pair of visits nearly at one spot)
 
 
 class DeviationState(msgspec.Struct, frozen=True):
@@ -54,6 +58,10 @@ class DeviationState(msgspec.Struct, frozen=True):
     rejected: int
     edges: list[tuple[int, int, float, float]]  # a < b, sum of weights, sum of weight x (d_b - d_a)
     estimate: dict[int, float]
+    visit_position: tuple[float, float, float, float, float] | None = None  # the open visit's place
+    # centre and its sum of the robot's offsets from it, and the scans with an offset
+    previous_position: tuple[float, float, float, float] | None = None  # the last closed visit's centre
+    # and mean offset
 
 
 class DeviationMap:
@@ -68,7 +76,10 @@ class DeviationMap:
     calibrated on-line against the compass over scan-to-scan increments, ``dc = a dw + b dL`` by
     least squares (the wheels' increments are the precise regressor, the compass's noise is in
     ``dc``; a deviation hardly changes over 0.2 m), with priors ``a = 1``, ``b = 0`` that hold it while
-    the robot has not turned; the wheel heading is integrated as ``a dw + b dL``. The deviations minimise
+    the robot has not turned; the wheel heading is integrated as ``a dw + b dL``. A visit's scans lie on
+    the side of its place the robot came from or left to, so a pair sees ``k (d_b - d_a)``, ``k`` the
+    visits' mean positions projected on the centres' displacement over its length (``visit_baseline``;
+    the deviation taken as linear between the centres). The deviations minimise
     the weighted squares of every pair of consecutive visits (variance ``compass_std^2 (1/n_a +
     1/n_b)`` plus the wheels' error over the path and the turns in between) and a prior per place
     centred on 0 (most of a building is undisturbed): ``N(0, prior_std^2)`` within ``prior_huber_rad``,
@@ -89,15 +100,19 @@ class DeviationMap:
         self._turned = 0.0
         self._visit: list | None = None  # [place, ref, sum, count, first path, last path, first/last turned]
         self._previous: tuple[int, float, int, float, float] | None = None
+        self._position: list[float] | None = None  # the open visit: centre x, y, offset sums x, y, count
+        self._previous_position: tuple[float, float, float, float] | None = None  # centre, mean offset
         self.rejected = 0  # pairs of visits left out by the gate
         self._edges: dict[tuple[int, int], list[float]] = {}
         self.estimate: dict[int, float] = {}  # place id -> deviation (rad); absent: 0
 
     # --- inputs -------------------------------------------------------------------------------
 
-    def observe(self, place_id: int, compass_rad: float, wheel_rad: float, path_m: float) -> bool:
+    def observe(self, place_id: int, compass_rad: float, wheel_rad: float, path_m: float,
+                centre_xy: tuple[float, float] | None = None, offset_xy: tuple[float, float] | None = None) -> bool:
         """One scan: the place the robot is at (negative: between places), the compass and the raw
-        wheel headings and the path travelled. Returns whether the estimate changed."""
+        wheel headings and the path travelled; where the place's centre is in the map and the robot's
+        offset from it, when known. Returns whether the estimate changed."""
         self._calibrate(compass_rad, wheel_rad, path_m)
         g = float(wrap_angle(compass_rad - self._wheel))
         v = self._visit
@@ -105,10 +120,13 @@ class DeviationMap:
             v[2] += float(wrap_angle(g - v[1]))
             v[3] += 1
             v[5], v[7] = path_m, self._turned
+            self._add_position(centre_xy, offset_xy)
             return False
         changed = self._close_visit()
         if place_id >= 0:
             self._visit = [place_id, g, 0.0, 1, path_m, path_m, self._turned, self._turned]
+            self._position = None
+            self._add_position(centre_xy, offset_xy)
         return changed
 
     def remove_place(self, place_id: int) -> None:
@@ -149,7 +167,9 @@ class DeviationMap:
             wheel_rad=self._wheel, turned_rad=self._turned,
             visit=None if v is None else (int(v[0]), v[1], v[2], int(v[3]), v[4], v[5], v[6], v[7]),
             previous=self._previous, rejected=self.rejected,
-            edges=[(a, b, e[0], e[1]) for (a, b), e in self._edges.items()], estimate=dict(self.estimate))
+            edges=[(a, b, e[0], e[1]) for (a, b), e in self._edges.items()], estimate=dict(self.estimate),
+            visit_position=None if self._position is None else tuple(self._position),
+            previous_position=self._previous_position)
 
     def restore_snapshot(self, state: DeviationState) -> None:
         self._normal = np.array(state.normal, dtype=float)
@@ -160,6 +180,8 @@ class DeviationMap:
         self._previous = None if state.previous is None else tuple(state.previous)
         self._edges = {(a, b): [w, wm] for a, b, w, wm in state.edges}
         self.estimate = {int(k): float(v) for k, v in state.estimate.items()}
+        self._position = None if state.visit_position is None else list(state.visit_position)
+        self._previous_position = state.previous_position
 
     # --- internals ----------------------------------------------------------------------------
 
@@ -182,12 +204,41 @@ class DeviationMap:
         self._normal += (dw * dw, dw * dl, dl * dl, dw * dc, dl * dc)
         self._samples += 1
 
+    def _add_position(self, centre_xy: tuple[float, float] | None, offset_xy: tuple[float, float] | None) -> None:
+        if centre_xy is None or offset_xy is None:
+            return
+        q = self._position
+        if q is None:
+            self._position = [float(centre_xy[0]), float(centre_xy[1]), float(offset_xy[0]), float(offset_xy[1]), 1.0]
+        else:
+            q[2] += float(offset_xy[0])
+            q[3] += float(offset_xy[1])
+            q[4] += 1.0
+
+    def _baseline(self, position: tuple[float, float, float, float] | None) -> float:
+        """How much of the deviations' difference between the last two visits' places their scans saw:
+        the visits' mean positions projected on the centres' displacement, over its length (linear
+        deviation between the centres); 1 without positions."""
+        prev, p = self._previous_position, self.params
+        if not p.visit_baseline or prev is None or position is None:
+            return 1.0
+        c = np.subtract(position[:2], prev[:2])
+        length2 = float(c @ c)
+        if length2 < 1e-6:
+            return 1.0
+        seen = np.add(position[:2], position[2:]) - np.add(prev[:2], prev[2:])
+        return max(float(seen @ c) / length2, p.min_baseline)
+
     def _close_visit(self) -> bool:
         v, self._visit = self._visit, None
         if v is None:
             return False
+        q, self._position = self._position, None
+        position = None if q is None else (q[0], q[1], q[2] / q[4], q[3] / q[4])
         place, mean, count = v[0], float(wrap_angle(v[1] + v[2] / v[3])), v[3]
         prev, self._previous = self._previous, (place, mean, count, v[5], v[7])
+        k = self._baseline(position) if prev is not None and prev[0] != place else 1.0
+        self._previous_position = position
         p = self.params
         if prev is None or prev[0] == place or v[4] - prev[3] > p.max_gap_m:
             return False
@@ -197,12 +248,14 @@ class DeviationMap:
         a, b, diff = prev[0], place, float(wrap_angle(mean - prev[1]))
         if a > b:
             a, b, diff = b, a, -diff
-        if abs(diff - self.deviation(b) + self.deviation(a)) > p.gate_sd * math.sqrt(var + 2.0 * p.prior_std_rad**2):
+        # the pair measures k (d_b - d_a): a row of weight k^2 / var for the difference diff / k
+        if abs(diff - k * (self.deviation(b) - self.deviation(a))) > p.gate_sd * math.sqrt(
+                var + 2.0 * (k * p.prior_std_rad) ** 2):
             self.rejected += 1
             return False
         e = self._edges.setdefault((a, b), [0.0, 0.0])
-        e[0] += 1.0 / var
-        e[1] += diff / var
+        e[0] += k * k / var
+        e[1] += k * diff / var
         self._solve()
         return True
 

@@ -72,11 +72,12 @@ def test_short_run_places_offsets_and_links(short_run):
 def test_compass_deviation_learned_and_taken_out_of_the_links():
     """50 simulated minutes of orebro-office pass the disturbances at (11, 6) and (38, 2) (12 and -18
     degrees). On the links whose places the truth deviates by more than 4 degrees, what is left of the
-    true deviation after the recognizer's correction is 0.34-0.50 of it (seeds 0-7), and the published
-    angles are off by 0.62-0.92 of the same links' uncorrected angles (seed 0: 5.9 against 8.8 degrees).
-    The second ratio carries every other error of the links too, so it moves with the run (on the CI
-    machine seed 0 took another path and came to 0.85), and is held only to be below 1; the first
-    measures the learning itself (1 with no correction)."""
+    true deviation after the recognizer's correction is 0.21-0.37 of it (seeds 0-7; 0.46 for seed 0
+    with the pairs of visits compared at the places' centres, ``DeviationParams.visit_baseline`` off),
+    and the published angles are off by 0.58-0.94 of the same links' uncorrected angles (seed 0: 5.7
+    against 8.9 degrees). The second ratio carries every other error of the links too, so it moves
+    with the run (on the CI machine seed 0 once took another path and came to 0.85), and is held only
+    to be below 1; the first measures the learning itself (1 with no correction)."""
     w = load_world("orebro-office")
     run = InProcessRun(w, InProcessParams(seed=0, max_sim_time_s=3000.0, relax=False))
     rec = run.run()
@@ -95,7 +96,7 @@ def test_compass_deviation_learned_and_taken_out_of_the_links():
     disturbed = np.abs(true_corr) > math.radians(4.0)
     assert disturbed.sum() >= 15
     left = np.abs(true_corr - corrections)[disturbed].mean() / np.abs(true_corr)[disturbed].mean()
-    assert left < 0.65
+    assert left < 0.42
     assert np.abs(corrected)[disturbed].mean() < np.abs(uncorrected)[disturbed].mean()
     # the places well inside a disturbance are found turned its way
     strong = [i for i, d in true_dev.items() if abs(d) > math.radians(8.0)]
