@@ -125,7 +125,6 @@ class DeviationMap:
         changed = self._close_visit()
         if place_id >= 0:
             self._visit = [place_id, g, 0.0, 1, path_m, path_m, self._turned, self._turned]
-            self._position = None
             self._add_position(centre_xy, offset_xy)
         return changed
 
@@ -134,9 +133,9 @@ class DeviationMap:
         self._edges = {k: e for k, e in self._edges.items() if place_id not in k}
         self.estimate.pop(place_id, None)
         if self._visit is not None and self._visit[0] == place_id:
-            self._visit = None
+            self._visit, self._position = None, None
         if self._previous is not None and self._previous[0] == place_id:
-            self._previous = None
+            self._previous, self._previous_position = None, None
 
     def deviation(self, place_id: int) -> float:
         """The estimated deviation at a place, 0 where nothing is known."""
@@ -215,11 +214,12 @@ class DeviationMap:
             q[3] += float(offset_xy[1])
             q[4] += 1.0
 
-    def _baseline(self, position: tuple[float, float, float, float] | None) -> float:
-        """How much of the deviations' difference between the last two visits' places their scans saw:
-        the visits' mean positions projected on the centres' displacement, over its length (linear
-        deviation between the centres); 1 without positions."""
-        prev, p = self._previous_position, self.params
+    def _baseline(self, prev: tuple[float, float, float, float] | None,
+                  position: tuple[float, float, float, float] | None) -> float:
+        """How much of the deviations' difference between two consecutive visits' places their scans
+        saw: the visits' mean positions (centre, mean offset) projected on the centres' displacement,
+        over its length (linear deviation between the centres); 1 without positions."""
+        p = self.params
         if not p.visit_baseline or prev is None or position is None:
             return 1.0
         c = np.subtract(position[:2], prev[:2])
@@ -237,11 +237,11 @@ class DeviationMap:
         position = None if q is None else (q[0], q[1], q[2] / q[4], q[3] / q[4])
         place, mean, count = v[0], float(wrap_angle(v[1] + v[2] / v[3])), v[3]
         prev, self._previous = self._previous, (place, mean, count, v[5], v[7])
-        k = self._baseline(position) if prev is not None and prev[0] != place else 1.0
-        self._previous_position = position
+        prev_position, self._previous_position = self._previous_position, position
         p = self.params
         if prev is None or prev[0] == place or v[4] - prev[3] > p.max_gap_m:
             return False
+        k = self._baseline(prev_position, position)
         gap = max(v[4] - prev[3], p.min_gap_m)
         var = (p.compass_std_rad**2 * (1.0 / prev[2] + 1.0 / count) + p.wheel_std_rad_per_sqrt_m**2 * gap
                + p.wheel_std_rad_per_sqrt_rad**2 * max(v[6] - prev[4], 0.0))
