@@ -158,6 +158,7 @@ class InProcessRun:
         self._prev_scan: SonarScan | None = None
         self._prev_fix: PlaceFix | None = None
         self._relocalised = 0  # the explorer's relocalisation requests the recognizer has acted on
+        self._since_scan: list[DeadReckonedPose] = []  # the dead-reckoned poses since the last scan
         self._state, frame = sim_core.start(self.model, self.rng)
         self._command = self._handle(frame)
 
@@ -213,7 +214,8 @@ class InProcessRun:
             if self.explorer.relocalisations > self._relocalised:  # asked for by tick k - 1's step
                 self._relocalised = self.explorer.relocalisations
                 self.recognizer.relocalise()
-            out = self.recognizer.step(dr, frame.sonar)
+            out = self.recognizer.step(dr, frame.sonar, [b for b in self._since_scan if b.stamp < dr.stamp])
+            self._since_scan = []
             self._links(out, frame.tick)
             loc = out.localization
             r.scans.append(ScanRecord(frame.tick, truth, (dr.compass.x_m, dr.compass.y_m), loc.place_id,
@@ -248,6 +250,12 @@ class InProcessRun:
             self._dr, out = dr_core.step(self._dr, odometry)
             poses += out
         self._timings["dead_reckoning"] += time.perf_counter() - t0
+        for pose in poses:  # as the recognizer's node keeps them: one a stamp, the latest
+            if self._since_scan and self._since_scan[-1].stamp >= pose.stamp:
+                if self._since_scan[-1].stamp == pose.stamp:
+                    self._since_scan[-1] = pose
+                continue
+            self._since_scan.append(pose)
         if not poses:
             raise RuntimeError(f"dead reckoning gave no pose at {compass.stamp:.1f} s")
         return poses[-1]

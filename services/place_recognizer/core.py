@@ -319,7 +319,8 @@ class PlaceRecognizer:
 
     # --- inputs -------------------------------------------------------------------------------
 
-    def step(self, dr: DeadReckonedPose, scan: SonarScan) -> RecognizerOutput:
+    def step(self, dr: DeadReckonedPose, scan: SonarScan,
+             between: Sequence[DeadReckonedPose] = ()) -> RecognizerOutput:
         """One observation: a sonar scan and the dead-reckoned pose it was taken at.
 
         Parameters
@@ -328,6 +329,9 @@ class PlaceRecognizer:
             Its ``compass`` pose places the scan; ``steps`` and ``path_length_m`` give ``T`` and the
             mean step of link measurements.
         scan : messages.types.SonarScan
+        between : sequence of messages.types.DeadReckonedPose
+            The poses since the last scan, oldest first: their compass readings go into the visits'
+            means of the deviation map.
 
         Returns
         -------
@@ -350,9 +354,11 @@ class PlaceRecognizer:
         if self._first_visit == self.current and self.current != NO_PLACE:
             self._grow_signature(self.current, placed)
         links = self._track(dr)
-        if p.deviation.enabled and self.deviations.observe(self.current, dr.compass.heading_rad,
-                                                            dr.raw.heading_rad, dr.path_length_m,
-                                                            *self._centre_and_offset(self.current)):
+        if p.deviation.enabled and self.deviations.observe(
+                self.current, dr.compass.heading_rad, dr.raw.heading_rad, dr.path_length_m,
+                *self._centre_and_offset(self.current), xy=xy,
+                readings=[(b.compass.heading_rad, b.raw.heading_rad, b.path_length_m, b.compass.x_m, b.compass.y_m)
+                          for b in between]):
             links = links + self._recorrected({(lk.from_id, lk.to_id) for lk in links})
         valid = scores[~np.isnan(scores)]
         diag = {"best_score": float(valid.max()) if valid.size else float("nan"),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import msgspec
@@ -25,8 +26,9 @@ class DeviationParams:
     # is rare and large where it is, and a Gaussian prior shrinks it and spreads noise over the rest
     prior_iterations: int = 2  # reweighting steps per solve, each from the last estimate's weights
     compass_std_rad: float = 2.0 * _DEG  # white noise of one compass reading
-    wheel_std_rad_per_sqrt_m: float = 2.0 * _DEG  # heading error the calibrated wheels add per sqrt(metre)
-    wheel_std_rad_per_sqrt_rad: float = 0.03  # ... and per sqrt(radian) turned
+    wheel_std_rad_per_sqrt_m: float = 1.0 * _DEG  # heading error the calibrated wheels add per sqrt(metre)
+    wheel_std_rad_per_sqrt_rad: float = 0.03  # ... and per sqrt(radian) turned (measured in whole runs:
+    # 0.7-1.1 degrees a sqrt(metre) and 0.02 a sqrt(radian), docs/places.md)
     min_gap_m: float = 0.2  # path counted between two visits at least (the wheels' error within a place)
     max_gap_m: float = 10.0  # two visits further apart along the path than this are not compared
     scale_prior_std: float = 0.05  # the wheels' rotation scale is 1 within about this before calibration
@@ -54,7 +56,7 @@ class DeviationState(msgspec.Struct, frozen=True):
     visit: tuple[int, float, float, int, float, float, float, float] | None  # place, ref, sum, count,
     # first and last path, first and last turned
     previous: tuple[int, float, int, float, float] | None  # the last closed visit: place, mean, count,
-    # last path, last turned
+    # path and turned a third of its span before its end (where its mean's wheel error is counted from)
     rejected: int
     edges: list[tuple[int, int, float, float]]  # a < b, sum of weights, sum of weight x (d_b - d_a)
     estimate: dict[int, float]
@@ -62,6 +64,10 @@ class DeviationState(msgspec.Struct, frozen=True):
     # centre and its sum of the robot's offsets from it, and the scans with an offset
     previous_position: tuple[float, float, float, float] | None = None  # the last closed visit's centre
     # and mean offset
+    last_reading: tuple[float, float, float] | None = None  # compass heading, wheel heading, path of the
+    # last reading the wheel heading was integrated to (a scan's or one between scans)
+    visit_anchor: tuple[float, float, float, float] | None = None  # the open visit's last scan:
+    # dead-reckoned position and offset from the place, to place the readings around it
 
 
 class DeviationMap:
@@ -71,7 +77,8 @@ class DeviationMap:
     -----
     A disturbed compass bends every link measured through the disturbance the same way; fusing
     traversals does not average it out. The wheels do not see it. Between two consecutive visits of
-    places ``a`` and ``b`` the difference ``g = compass - wheels`` (averaged over each visit's scans)
+    places ``a`` and ``b`` the difference ``g = compass - wheels`` (averaged over each visit's
+    readings: its scans' and those of the dead-reckoned poses between them, some five a scan)
     changes by ``d_b - d_a`` plus the wheels' heading error over the path in between. The wheels are
     calibrated on-line against the compass over scan-to-scan increments, ``dc = a dw + b dL`` by
     least squares (the wheels' increments are the precise regressor, the compass's noise is in
@@ -81,7 +88,8 @@ class DeviationMap:
     visits' mean positions projected on the centres' displacement over its length (``visit_baseline``;
     the deviation taken as linear between the centres). The deviations minimise
     the weighted squares of every pair of consecutive visits (variance ``compass_std^2 (1/n_a +
-    1/n_b)`` plus the wheels' error over the path and the turns in between) and a prior per place
+    1/n_b)`` plus the wheels' error over the path and the turns between the two means, each counted
+    from a third of its visit's span, where a random walk's mean has its error) and a prior per place
     centred on 0 (most of a building is undisturbed): ``N(0, prior_std^2)`` within ``prior_huber_rad``,
     growing linearly beyond (Huber), so that the few disturbed places are not shrunk towards 0 nor
     the others spread by them. One sparse solve per reweighting step, ``prior_iterations`` steps per
@@ -102,6 +110,7 @@ class DeviationMap:
         self._previous: tuple[int, float, int, float, float] | None = None
         self._position: list[float] | None = None  # the open visit: centre x, y, offset sums x, y, count
         self._previous_position: tuple[float, float, float, float] | None = None  # centre, mean offset
+        self._last_reading: tuple[float, float, float] | None = None  # the wheels integrated to here
         self.rejected = 0  # pairs of visits left out by the gate
         self._edges: dict[tuple[int, int], list[float]] = {}
         self.estimate: dict[int, float] = {}  # place id -> deviation (rad); absent: 0
@@ -109,23 +118,36 @@ class DeviationMap:
     # --- inputs -------------------------------------------------------------------------------
 
     def observe(self, place_id: int, compass_rad: float, wheel_rad: float, path_m: float,
-                centre_xy: tuple[float, float] | None = None, offset_xy: tuple[float, float] | None = None) -> bool:
+                centre_xy: tuple[float, float] | None = None, offset_xy: tuple[float, float] | None = None,
+                xy: tuple[float, float] | None = None,
+                readings: Sequence[tuple[float, float, float, float, float]] = ()) -> bool:
         """One scan: the place the robot is at (negative: between places), the compass and the raw
         wheel headings and the path travelled; where the place's centre is in the map and the robot's
-        offset from it, when known. Returns whether the estimate changed."""
+        offset from it, when known, and the dead-reckoned position ``xy``. ``readings`` are the
+        ``(compass, wheel, path, x, y)`` of every dead-reckoned pose since the last scan, oldest first:
+        all belong to the visit when the place is the last scan's, else their first half to the last
+        scan's visit and the rest to this one's. Returns whether the estimate changed."""
+        taken = [(self._integrate(c, w, s), s, self._turned, x, y) for c, w, s, x, y in readings]
         self._calibrate(compass_rad, wheel_rad, path_m)
         g = float(wrap_angle(compass_rad - self._wheel))
         v = self._visit
         if v is not None and v[0] == place_id:
-            v[2] += float(wrap_angle(g - v[1]))
-            v[3] += 1
-            v[5], v[7] = path_m, self._turned
-            self._add_position(centre_xy, offset_xy)
+            for r in taken:
+                self._add_reading(*r)
+            self._add_reading(g, path_m, self._turned)
+            self._add_position(centre_xy, offset_xy, xy)
             return False
+        half = len(taken) // 2
+        if v is not None:
+            for r in taken[:half]:
+                self._add_reading(*r)
         changed = self._close_visit()
         if place_id >= 0:
-            self._visit = [place_id, g, 0.0, 1, path_m, path_m, self._turned, self._turned]
-            self._add_position(centre_xy, offset_xy)
+            first = taken[half:] + [(g, path_m, self._turned)]
+            self._visit = [place_id, first[0][0], 0.0, 0, first[0][1], first[0][1], first[0][2], first[0][2]]
+            self._add_position(centre_xy, offset_xy, xy)
+            for r in first:
+                self._add_reading(*r)
         return changed
 
     def remove_place(self, place_id: int) -> None:
@@ -167,8 +189,9 @@ class DeviationMap:
             visit=None if v is None else (int(v[0]), v[1], v[2], int(v[3]), v[4], v[5], v[6], v[7]),
             previous=self._previous, rejected=self.rejected,
             edges=[(a, b, e[0], e[1]) for (a, b), e in self._edges.items()], estimate=dict(self.estimate),
-            visit_position=None if self._position is None else tuple(self._position),
-            previous_position=self._previous_position)
+            visit_position=None if self._position is None else tuple(self._position[:5]),
+            previous_position=self._previous_position, last_reading=self._last_reading,
+            visit_anchor=None if self._position is None or len(self._position) < 9 else tuple(self._position[5:]))
 
     def restore_snapshot(self, state: DeviationState) -> None:
         self._normal = np.array(state.normal, dtype=float)
@@ -180,22 +203,36 @@ class DeviationMap:
         self._edges = {(a, b): [w, wm] for a, b, w, wm in state.edges}
         self.estimate = {int(k): float(v) for k, v in state.estimate.items()}
         self._position = None if state.visit_position is None else list(state.visit_position)
+        if self._position is not None and state.visit_anchor is not None:
+            self._position += list(state.visit_anchor)
         self._previous_position = state.previous_position
+        self._last_reading = self._last if state.last_reading is None else tuple(state.last_reading)
 
     # --- internals ----------------------------------------------------------------------------
 
-    def _calibrate(self, compass_rad: float, wheel_rad: float, path_m: float) -> None:
-        p = self.params
-        last, self._last = self._last, (compass_rad, wheel_rad, path_m)
+    def _integrate(self, compass_rad: float, wheel_rad: float, path_m: float) -> float:
+        """The calibrated wheel heading carried to a reading; returns the reading's ``compass - wheels``."""
+        last, self._last_reading = self._last_reading, (compass_rad, wheel_rad, path_m)
         if last is None:
             self._wheel = compass_rad  # the first reading aligns the wheels with the compass
+        else:
+            dw = float(wrap_angle(wheel_rad - last[1]))
+            a, b = self.calibration()
+            self._wheel += a * dw + b * (path_m - last[2])
+            self._turned += abs(dw)
+        return float(wrap_angle(compass_rad - self._wheel))
+
+    def _calibrate(self, compass_rad: float, wheel_rad: float, path_m: float) -> None:
+        """Integrate the wheels to a scan, then add its increment from the last scan to the calibration."""
+        p = self.params
+        last, self._last = self._last, (compass_rad, wheel_rad, path_m)
+        a, b = self.calibration()
+        self._integrate(compass_rad, wheel_rad, path_m)
+        if last is None:
             return
         dc = float(wrap_angle(compass_rad - last[0]))
         dw = float(wrap_angle(wheel_rad - last[1]))
         dl = path_m - last[2]
-        a, b = self.calibration()
-        self._wheel += a * dw + b * dl
-        self._turned += abs(dw)
         if abs(dw) > p.max_turn_rad or abs(dc) > p.max_turn_rad:
             return
         if self._samples >= 50 and abs(dc - a * dw - b * dl) > p.calibration_gate_rad:
@@ -203,16 +240,35 @@ class DeviationMap:
         self._normal += (dw * dw, dw * dl, dl * dl, dw * dc, dl * dc)
         self._samples += 1
 
-    def _add_position(self, centre_xy: tuple[float, float] | None, offset_xy: tuple[float, float] | None) -> None:
+    def _add_reading(self, g: float, path_m: float, turned: float,
+                     x: float | None = None, y: float | None = None) -> None:
+        """One reading into the open visit; a reading between scans with its position (``x``, ``y``)."""
+        v = self._visit
+        v[2] += float(wrap_angle(g - v[1]))
+        v[3] += 1
+        v[5], v[7] = path_m, turned
+        q = self._position
+        if x is not None and q is not None and len(q) == 9:  # placed by the visit's last scan
+            q[2] += q[7] + x - q[5]
+            q[3] += q[8] + y - q[6]
+            q[4] += 1.0
+
+    def _add_position(self, centre_xy: tuple[float, float] | None, offset_xy: tuple[float, float] | None,
+                      xy: tuple[float, float] | None) -> None:
+        """A scan's offset into the open visit's positions (the visit's place centre from its first);
+        with its dead-reckoned position it places the readings that follow (and, for a new visit, those
+        just before)."""
         if centre_xy is None or offset_xy is None:
             return
         q = self._position
         if q is None:
-            self._position = [float(centre_xy[0]), float(centre_xy[1]), float(offset_xy[0]), float(offset_xy[1]), 1.0]
-        else:
-            q[2] += float(offset_xy[0])
-            q[3] += float(offset_xy[1])
-            q[4] += 1.0
+            q = self._position = [float(centre_xy[0]), float(centre_xy[1]), 0.0, 0.0, 0.0]
+        q[2] += float(offset_xy[0])
+        q[3] += float(offset_xy[1])
+        q[4] += 1.0
+        del q[5:]
+        if xy is not None:
+            q += [float(xy[0]), float(xy[1]), float(offset_xy[0]), float(offset_xy[1])]
 
     def _baseline(self, prev: tuple[float, float, float, float] | None,
                   position: tuple[float, float, float, float] | None) -> float:
@@ -236,15 +292,18 @@ class DeviationMap:
         q, self._position = self._position, None
         position = None if q is None else (q[0], q[1], q[2] / q[4], q[3] / q[4])
         place, mean, count = v[0], float(wrap_angle(v[1] + v[2] / v[3])), v[3]
-        prev, self._previous = self._previous, (place, mean, count, v[5], v[7])
+        # the wheels' error in a visit's mean is their error a third of its span from either end
+        # (the mean of a random walk): counted from there, the path and turns between two means
+        path3, turned3 = (v[5] - v[4]) / 3.0, (v[7] - v[6]) / 3.0
+        prev, self._previous = self._previous, (place, mean, count, v[5] - path3, v[7] - turned3)
         prev_position, self._previous_position = self._previous_position, position
         p = self.params
         if prev is None or prev[0] == place or v[4] - prev[3] > p.max_gap_m:
             return False
         k = self._baseline(prev_position, position)
-        gap = max(v[4] - prev[3], p.min_gap_m)
+        gap = max(v[4] + path3 - prev[3], p.min_gap_m)
         var = (p.compass_std_rad**2 * (1.0 / prev[2] + 1.0 / count) + p.wheel_std_rad_per_sqrt_m**2 * gap
-               + p.wheel_std_rad_per_sqrt_rad**2 * max(v[6] - prev[4], 0.0))
+               + p.wheel_std_rad_per_sqrt_rad**2 * max(v[6] + turned3 - prev[4], 0.0))
         a, b, diff = prev[0], place, float(wrap_angle(mean - prev[1]))
         if a > b:
             a, b, diff = b, a, -diff

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import bisect
+import itertools
 import logging
 import math
 import threading
@@ -195,6 +196,7 @@ class RecognizerShell:
         self._clock = clock
         self._stamps: deque[float] = deque()
         self._poses: deque[DeadReckonedPose] = deque()
+        self._stepped_stamp: float | None = None  # the pose stamp of the last scan stepped
         self._scans: list[tuple[SonarScan, float]] = []  # (scan, wall time of arrival), in stamp order
         self._events: list[tuple[PlaceConfirmed | PlaceDeleted, float]] = []  # in arrival order
         self._cmd_tick = -1  # the latest tick a velocity command answered
@@ -444,7 +446,11 @@ class RecognizerShell:
         if dr is None:
             self.counts["unpaired_scans"] += 1
             return
-        out = self.core.step(dr, scan)
+        since = self._stepped_stamp
+        i = bisect.bisect_right(self._stamps, since + 1e-9) if since is not None else len(self._stamps)
+        j = bisect.bisect_left(self._stamps, dr.stamp - 1e-9)
+        out = self.core.step(dr, scan, list(itertools.islice(self._poses, i, max(i, j))))
+        self._stepped_stamp = dr.stamp
         self.counts["scans"] += 1
         loc = out.localization
         self.counts["localised"] += loc.place_id >= 0

@@ -21,23 +21,32 @@ def _field(x: float) -> float:
 
 
 def _drive(dm: DeviationMap, rng: np.random.Generator, *, laps: int, scale: float = 1.03,
-           drift_rad_per_m: float = 1.0 * _DEG, compass_std: float = 2.0 * _DEG) -> list[tuple[int, float]]:
+           drift_rad_per_m: float = 1.0 * _DEG, compass_std: float = 2.0 * _DEG,
+           between: int = 0) -> list[tuple[int, float]]:
     """Back and forth along a 20 m corridor with places every metre and scans every 0.2 m, wiggling on
-    the way and turning on the spot at each end; feeds ``dm`` as the recognizer does. The wheels turn
-    ``scale`` times too far and drift ``drift_rad_per_m``. Returns the places and their true deviations."""
+    the way and turning on the spot at each end; feeds ``dm`` as the recognizer does, with ``between``
+    compass readings between each two scans. The wheels turn ``scale`` times too far and drift
+    ``drift_rad_per_m``. Returns the places and their true deviations."""
     state = {"heading": 0.0, "wheel": 0.0, "path": 0.0, "x": 0.0}
 
-    def scan(heading: float, step_m: float) -> None:
+    def move(heading: float, step_m: float, wheel_std: float) -> tuple[float, float, float, float, float]:
         turn = math.remainder(heading - state["heading"], 2 * math.pi)
         state["heading"] = heading
         state["x"] += step_m * math.cos(heading)
         state["path"] += step_m
-        state["wheel"] += scale * turn + drift_rad_per_m * step_m + 0.003 * rng.standard_normal()
+        state["wheel"] += scale * turn + drift_rad_per_m * step_m + wheel_std * rng.standard_normal()
         compass = heading + _field(state["x"]) + compass_std * rng.standard_normal()
-        near = round(state["x"])
-        place = near if abs(state["x"] - near) < 0.3 else -1
-        dm.observe(place, math.remainder(compass, 2 * math.pi), math.remainder(state["wheel"], 2 * math.pi),
-                   state["path"])
+        return (math.remainder(compass, 2 * math.pi), math.remainder(state["wheel"], 2 * math.pi),
+                state["path"], state["x"], 0.0)
+
+    def scan(heading: float, step_m: float) -> None:
+        start, n = state["heading"], between + 1
+        readings = [move(start + math.remainder(heading - start, 2 * math.pi) * k / n, step_m / n,
+                         0.003 / math.sqrt(n)) for k in range(1, n)]
+        compass, wheel, path, x, _ = move(heading, step_m / n, 0.003 / math.sqrt(n))
+        near = round(x)
+        place = near if abs(x - near) < 0.3 else -1
+        dm.observe(place, compass, wheel, path, xy=(x, 0.0), readings=readings)
 
     for _ in range(laps):
         for leg in (0.0, math.pi):
@@ -68,23 +77,44 @@ def test_calibration_and_deviations_from_a_corridor():
     assert dm.rejected == 0 and dm.edges >= 19
 
 
-def _shuttle(dm: DeviationMap, rng: np.random.Generator, *, rounds: int) -> list[tuple[int, float]]:
+@pytest.mark.parametrize("between", [0, 4])
+def test_readings_between_scans_narrow_the_visits_means(between):
+    # five compass readings a scan instead of one: the quiet places' estimates scatter less (seed 0:
+    # 0.25 degrees against 0.36 with the scans' readings alone; seeds 0-7 0.18-0.34 against 0.33-0.42)
+    dm = DeviationMap()
+    truth = _drive(dm, np.random.default_rng(0), laps=6, between=between)
+    est = np.array([dm.deviation(p) for p, _ in truth])
+    true = np.array([d for _, d in truth])
+    err = (est - est.mean()) - (true - true.mean())
+    quiet = np.sqrt(np.mean(err[true < 5 * _DEG] ** 2))
+    assert (quiet < 0.3 * _DEG) == (between > 0)
+    assert np.abs(err).max() < 1.2 * _DEG
+
+
+def _shuttle(dm: DeviationMap, rng: np.random.Generator, *, rounds: int, between: int = 0) -> list[tuple[int, float]]:
     """Along the same corridor, to and fro between each two neighbouring places before going on: the
     robot is at a place while 0.1-0.4 m from its centre on the side of the other one, so consecutive
     visits' mean positions are 0.5 m apart instead of the centres' 1 m. Wheels without error; the
-    recognizer's centre and offset are given with every scan. Returns the places and their true
-    deviations."""
-    path = 0.0
+    recognizer's centre and offset are given with every scan, and ``between`` compass readings on the
+    way from the last scan. Returns the places and their true deviations."""
+    state = {"path": 0.0, "x": 0.0}
+
+    def scan(place: int, x: float, step_m: float) -> None:
+        x0, path0, n = state["x"], state["path"], between + 1
+        readings = [(_field(x0 + (x - x0) * k / n) + 2.0 * _DEG * rng.standard_normal(), 0.0,
+                     path0 + step_m * k / n, x0 + (x - x0) * k / n, 0.0) for k in range(1, n)]
+        state["x"], state["path"] = x, path0 + step_m
+        compass = _field(x) + 2.0 * _DEG * rng.standard_normal()
+        if place < 0:
+            dm.observe(-1, compass, 0.0, state["path"], xy=(x, 0.0), readings=readings)
+        else:
+            dm.observe(place, compass, 0.0, state["path"], (float(place), 0.0), (x - place, 0.0), xy=(x, 0.0),
+                       readings=readings)
 
     def visit(place: int, toward: float) -> None:
-        nonlocal path
         for off in (0.1, 0.2, 0.3, 0.4):
-            x = place + toward * off
-            path += 0.1
-            compass = _field(x) + 2.0 * _DEG * rng.standard_normal()
-            dm.observe(place, compass, 0.0, path, (float(place), 0.0), (x - place, 0.0))
-        path += 0.3
-        dm.observe(-1, _field(place + 0.5 * toward), 0.0, path)
+            scan(place, place + toward * off, 0.1)
+        scan(-1, place + 0.5 * toward, 0.3)
 
     for p in range(20):
         for _ in range(rounds):
@@ -93,18 +123,19 @@ def _shuttle(dm: DeviationMap, rng: np.random.Generator, *, rounds: int) -> list
     return [(p, _field(float(p))) for p in range(0, 21)]
 
 
-@pytest.mark.parametrize("baseline", [True, False])
-def test_visits_on_one_side_of_their_places_measure_the_deviations_where_they_were(baseline):
+@pytest.mark.parametrize(("baseline", "between"), [(True, 0), (False, 0), (True, 3), (False, 3)])
+def test_visits_on_one_side_of_their_places_measure_the_deviations_where_they_were(baseline, between):
     # consecutive visits see half the deviations' difference between their places: scaled back by
-    # their positions the peak is found, taken at the centres it is shrunk
+    # their positions (the readings between scans placed from the scans') the peak is found, taken
+    # at the centres it is shrunk
     dm = DeviationMap(DeviationParams(visit_baseline=baseline))
-    truth = _shuttle(dm, np.random.default_rng(6), rounds=40)
+    truth = _shuttle(dm, np.random.default_rng(6), rounds=40, between=between)
     est = np.array([dm.deviation(p) for p, _ in truth])
     true = np.array([d for _, d in truth])
     err = (est - est.mean()) - (true - true.mean())
     peak = int(np.argmax(true))
-    if baseline:
-        assert np.abs(err).max() < 1.2 * _DEG
+    if baseline:  # seeds 0-7: the peak 0.1-1.6 degrees off (0.3-1.1 with the readings), 4.6-5.5 without
+        assert abs(err[peak]) < 2.0 * _DEG and np.abs(err).max() < 2.5 * _DEG
     else:
         assert err[peak] < -3.0 * _DEG
 
@@ -172,9 +203,10 @@ def test_an_impossible_pair_of_visits_is_left_out():
 
 
 @pytest.mark.parametrize("drive", [_drive, _shuttle])
-def test_checkpoint_round_trip_goes_on_identically(drive):
+@pytest.mark.parametrize("between", [0, 2])
+def test_checkpoint_round_trip_goes_on_identically(drive, between):
     a = DeviationMap()
-    size = {"laps": 2} if drive is _drive else {"rounds": 2}
+    size = {"laps": 2, "between": between} if drive is _drive else {"rounds": 2, "between": between}
     drive(a, np.random.default_rng(3), **size)
     c, w, path = a._last
     a.observe(3, c, w, path + 0.1, (3.0, 0.0), (0.2, 0.1))  # snapshot with a visit open
