@@ -245,6 +245,7 @@ class RecognizerState(msgspec.Struct, frozen=True):
     relocalisations: int = 0
     suspect: int = -1  # see PlaceRecognizer.relocalise
     unanchored: int = 0
+    deviation_place: int = NO_PLACE  # the last place a scan found the robot at
 
 
 class PlaceRecognizer:
@@ -304,6 +305,8 @@ class PlaceRecognizer:
         self._first_visit: int = NO_PLACE  # the new place whose signature still grows
         self._scans: deque[tuple[PlacedScan, float]] = deque()
         self._last_xy: tuple[float, float] | None = None
+        self._deviation_place = NO_PLACE  # the last place a scan found the robot at: between places
+        # the compass's deviation there turns the dead-reckoned motion into the map's frame
         self._last_scan_pose: tuple[float, float, float] | None = None  # where the last scan was matched
         self._inside: _Mark | None = None
         self._departure: _Mark | None = None
@@ -354,6 +357,8 @@ class PlaceRecognizer:
         if self._first_visit == self.current and self.current != NO_PLACE:
             self._grow_signature(self.current, placed)
         links = self._track(dr)
+        if self.current != NO_PLACE:
+            self._deviation_place = self.current
         if p.deviation.enabled and self.deviations.observe(
                 self.current, dr.compass.heading_rad, dr.raw.heading_rad, dr.path_length_m,
                 *self._centre_and_offset(self.current), xy=xy,
@@ -531,7 +536,8 @@ class PlaceRecognizer:
             links=list(self._links.values()),
             rejected_traversals=self.rejected_traversals, signature_ids=list(self._signatures),
             rejected_arrivals=self.rejected_arrivals, deviation=self.deviations.snapshot(),
-            relocalisations=self.relocalisations, suspect=self._suspect, unanchored=self._unanchored)
+            relocalisations=self.relocalisations, suspect=self._suspect, unanchored=self._unanchored,
+            deviation_place=self._deviation_place)
 
     def signatures(self) -> dict[int, PlaceSignature]:
         """Each place's signature; a signature's ``logodds`` is a new array whenever it has grown."""
@@ -553,6 +559,7 @@ class PlaceRecognizer:
         self.rejected_arrivals = state.rejected_arrivals
         self.relocalisations = state.relocalisations
         self._suspect, self._unanchored = state.suspect, state.unanchored
+        self._deviation_place = state.deviation_place
         self.deviations = DeviationMap(self.params.deviation)
         if state.deviation is not None:
             self.deviations.restore_snapshot(state.deviation)
@@ -661,10 +668,17 @@ class PlaceRecognizer:
         return grid, histograms(classify(grid, p.logodds_threshold))
 
     def _move_belief_to(self, xy: tuple[float, float]) -> None:
-        """Move the belief by the dead-reckoned displacement since the last pose it was moved to."""
+        """Move the belief by the dead-reckoned displacement since the last pose it was moved to, turned
+        by the compass's deviation where the robot is or last was: the map's links are corrected for
+        it, the compass's dead reckoning is not, and a displacement through a disturbance would
+        otherwise miss the next place by the deviation times its length (docs/places.md, *The robot's
+        motion in the map's frame*)."""
         p = self.params
         move = np.zeros(2) if self._last_xy is None else np.subtract(xy, self._last_xy)
         self._last_xy = xy
+        here = self.current if self.current != NO_PLACE else self._deviation_place
+        if p.deviation.enabled and here != NO_PLACE:
+            move = _rotated(move, -self.deviations.deviation(here))
         self.belief = _belief.predict(
             self.belief, move, transition_std_m=p.transition_std_m,
             transition_var_per_m_m2=p.transition_var_per_m_m2, place_radius_m=p.place_radius_m,

@@ -377,3 +377,23 @@ def test_a_robot_standing_still_weighs_its_repeated_scans_less():
     assert _scans_until_taken(0.2, still=False) == _scans_until_taken(1.0, still=False) < 100
     still, untempered = _scans_until_taken(0.2, still=True), _scans_until_taken(1.0, still=True)
     assert still >= 3 * untempered, (still, untempered)
+
+
+@pytest.mark.parametrize("enabled", [True, False])
+def test_the_motion_through_a_disturbance_is_turned_into_the_maps_frame(enabled):
+    """The map's links are corrected for the compass's deviation and the dead reckoning is not: the
+    belief moves by the dead-reckoned displacement turned by the deviation where the robot is."""
+    from services.place_recognizer.deviation import DeviationParams
+
+    rec = PlaceRecognizer(PlaceRecognizerParams(deviation=DeviationParams(enabled=enabled)))
+    d = _Drive(rec)
+    dr = d.dr(1.5, 1.5)
+    rec.step(dr, scan_at(1.5, 1.5, 0.0, WALLS)[0])
+    rec.add_place(0, 1.5, 1.5, dr)
+    rec.deviations.estimate[0] = math.radians(10.0)  # the compass reads 10 degrees more at place 0
+    row = rec.belief.index(0)
+    before = rec.belief.offsets[row].copy()
+    rec._move_belief_to((2.0, 1.5))  # 0.5 m east by the compass
+    moved = rec.belief.offsets[rec.belief.index(0)] - before
+    turn = math.radians(-10.0) if enabled else 0.0
+    np.testing.assert_allclose(moved, [0.5 * math.cos(turn), 0.5 * math.sin(turn)], atol=1e-3)  # 0.087 m apart
