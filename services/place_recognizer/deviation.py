@@ -108,7 +108,8 @@ class DeviationMap:
         self._turned = 0.0
         self._visit: list | None = None  # [place, ref, sum, count, first path, last path, first/last turned]
         self._previous: tuple[int, float, int, float, float] | None = None
-        self._position: list[float] | None = None  # the open visit: centre x, y, offset sums x, y, count
+        self._position: list[float] | None = None  # the open visit: centre x, y, offset sums x, y, count,
+        # then its last scan's dead-reckoned x, y and offset x, y when known (the readings' anchor)
         self._previous_position: tuple[float, float, float, float] | None = None  # centre, mean offset
         self._last_reading: tuple[float, float, float] | None = None  # the wheels integrated to here
         self.rejected = 0  # pairs of visits left out by the gate
