@@ -108,8 +108,9 @@ class DeviationMap:
         self._turned = 0.0
         self._visit: list | None = None  # [place, ref, sum, count, first path, last path, first/last turned]
         self._previous: tuple[int, float, int, float, float] | None = None
-        self._position: list[float] | None = None  # the open visit: centre x, y, offset sums x, y, count,
-        # then its last scan's dead-reckoned x, y and offset x, y when known (the readings' anchor)
+        self._position: list[float] | None = None  # the open visit: centre x, y, offset sums x, y, count
+        self._anchor: tuple[float, float, float, float] | None = None  # the open visit's last scan with a
+        # position: dead-reckoned x, y and offset x, y, from which the readings between scans are placed
         self._previous_position: tuple[float, float, float, float] | None = None  # centre, mean offset
         self._last_reading: tuple[float, float, float] | None = None  # the wheels integrated to here
         self.rejected = 0  # pairs of visits left out by the gate
@@ -128,8 +129,9 @@ class DeviationMap:
         ``(compass, wheel, path, x, y)`` of every dead-reckoned pose since the last scan, oldest first:
         all belong to the visit when the place is the last scan's, else their first half to the last
         scan's visit and the rest to this one's. Returns whether the estimate changed."""
-        taken = [(self._integrate(c, w, s), s, self._turned, x, y) for c, w, s, x, y in readings]
-        self._calibrate(compass_rad, wheel_rad, path_m)
+        cal = self.calibration()  # it changes only with a scan's increment, after the readings
+        taken = [(self._integrate(c, w, s, cal), s, self._turned, x, y) for c, w, s, x, y in readings]
+        self._calibrate(compass_rad, wheel_rad, path_m, cal)
         g = float(wrap_angle(compass_rad - self._wheel))
         v = self._visit
         if v is not None and v[0] == place_id:
@@ -156,7 +158,7 @@ class DeviationMap:
         self._edges = {k: e for k, e in self._edges.items() if place_id not in k}
         self.estimate.pop(place_id, None)
         if self._visit is not None and self._visit[0] == place_id:
-            self._visit, self._position = None, None
+            self._visit, self._position, self._anchor = None, None, None
         if self._previous is not None and self._previous[0] == place_id:
             self._previous, self._previous_position = None, None
 
@@ -190,9 +192,8 @@ class DeviationMap:
             visit=None if v is None else (int(v[0]), v[1], v[2], int(v[3]), v[4], v[5], v[6], v[7]),
             previous=self._previous, rejected=self.rejected,
             edges=[(a, b, e[0], e[1]) for (a, b), e in self._edges.items()], estimate=dict(self.estimate),
-            visit_position=None if self._position is None else tuple(self._position[:5]),
-            previous_position=self._previous_position, last_reading=self._last_reading,
-            visit_anchor=None if self._position is None or len(self._position) < 9 else tuple(self._position[5:]))
+            visit_position=None if self._position is None else tuple(self._position),
+            previous_position=self._previous_position, last_reading=self._last_reading, visit_anchor=self._anchor)
 
     def restore_snapshot(self, state: DeviationState) -> None:
         self._normal = np.array(state.normal, dtype=float)
@@ -204,31 +205,30 @@ class DeviationMap:
         self._edges = {(a, b): [w, wm] for a, b, w, wm in state.edges}
         self.estimate = {int(k): float(v) for k, v in state.estimate.items()}
         self._position = None if state.visit_position is None else list(state.visit_position)
-        if self._position is not None and state.visit_anchor is not None:
-            self._position += list(state.visit_anchor)
+        self._anchor = None if state.visit_anchor is None else tuple(state.visit_anchor)
         self._previous_position = state.previous_position
         self._last_reading = self._last if state.last_reading is None else tuple(state.last_reading)
 
     # --- internals ----------------------------------------------------------------------------
 
-    def _integrate(self, compass_rad: float, wheel_rad: float, path_m: float) -> float:
-        """The calibrated wheel heading carried to a reading; returns the reading's ``compass - wheels``."""
+    def _integrate(self, compass_rad: float, wheel_rad: float, path_m: float, cal: tuple[float, float]) -> float:
+        """The wheel heading, calibrated by ``cal`` (:meth:`calibration`), carried to a reading; returns
+        the reading's ``compass - wheels``."""
         last, self._last_reading = self._last_reading, (compass_rad, wheel_rad, path_m)
         if last is None:
             self._wheel = compass_rad  # the first reading aligns the wheels with the compass
         else:
             dw = float(wrap_angle(wheel_rad - last[1]))
-            a, b = self.calibration()
-            self._wheel += a * dw + b * (path_m - last[2])
+            self._wheel += cal[0] * dw + cal[1] * (path_m - last[2])
             self._turned += abs(dw)
         return float(wrap_angle(compass_rad - self._wheel))
 
-    def _calibrate(self, compass_rad: float, wheel_rad: float, path_m: float) -> None:
+    def _calibrate(self, compass_rad: float, wheel_rad: float, path_m: float, cal: tuple[float, float]) -> None:
         """Integrate the wheels to a scan, then add its increment from the last scan to the calibration."""
         p = self.params
         last, self._last = self._last, (compass_rad, wheel_rad, path_m)
-        a, b = self.calibration()
-        self._integrate(compass_rad, wheel_rad, path_m)
+        a, b = cal
+        self._integrate(compass_rad, wheel_rad, path_m, cal)
         if last is None:
             return
         dc = float(wrap_angle(compass_rad - last[0]))
@@ -248,10 +248,10 @@ class DeviationMap:
         v[2] += float(wrap_angle(g - v[1]))
         v[3] += 1
         v[5], v[7] = path_m, turned
-        q = self._position
-        if x is not None and q is not None and len(q) == 9:  # placed by the visit's last scan
-            q[2] += q[7] + x - q[5]
-            q[3] += q[8] + y - q[6]
+        q, at = self._position, self._anchor
+        if x is not None and at is not None:  # placed from the visit's last scan
+            q[2] += at[2] + x - at[0]
+            q[3] += at[3] + y - at[1]
             q[4] += 1.0
 
     def _add_position(self, centre_xy: tuple[float, float] | None, offset_xy: tuple[float, float] | None,
@@ -267,9 +267,7 @@ class DeviationMap:
         q[2] += float(offset_xy[0])
         q[3] += float(offset_xy[1])
         q[4] += 1.0
-        del q[5:]
-        if xy is not None:
-            q += [float(xy[0]), float(xy[1]), float(offset_xy[0]), float(offset_xy[1])]
+        self._anchor = None if xy is None else (float(xy[0]), float(xy[1]), float(offset_xy[0]), float(offset_xy[1]))
 
     def _baseline(self, prev: tuple[float, float, float, float] | None,
                   position: tuple[float, float, float, float] | None) -> float:
@@ -290,7 +288,7 @@ class DeviationMap:
         v, self._visit = self._visit, None
         if v is None:
             return False
-        q, self._position = self._position, None
+        q, self._position, self._anchor = self._position, None, None
         position = None if q is None else (q[0], q[1], q[2] / q[4], q[3] / q[4])
         place, mean, count = v[0], float(wrap_angle(v[1] + v[2] / v[3])), v[3]
         # the wheels' error in a visit's mean is their error a third of its span from either end
