@@ -196,7 +196,8 @@ class VelocityCommand(Message, frozen=True, kw_only=True):
     key's messages, not across keys. The relaxer applies the events a command names together.
     ``relocalisations`` counts the explorer's requests to the place recognizer to relocalise, up to
     this command (its legs keep failing from where the belief puts the robot): the recognizer acts on
-    a rise of the count before its next scan.
+    a rise of the count before its next scan. ``final`` marks the last command of a run (the explorer's
+    at the tick its exploration became complete): the simulator computes no tick after it.
     """
 
     v_mps: float
@@ -206,6 +207,7 @@ class VelocityCommand(Message, frozen=True, kw_only=True):
     deleted_seq: int = -1
     relocalisations: int = 0
     links_deleted_seq: int = -1
+    final: bool = False
 
 
 class ExplorationStatus(Message, frozen=True, kw_only=True):

@@ -371,12 +371,14 @@ class ExplorerShell:
         self._publish("cmd_velocity", self._velocity(stamp, tick, v, w))
 
     def _velocity(self, stamp: float, tick: int, v: float, w: float) -> VelocityCommand:
-        """The command of ``tick``, naming the latest place events published before it."""
+        """The command of ``tick``, naming the latest place events published before it; final once
+        exploration is complete (the status of the tick is kept before its command is made)."""
         return VelocityCommand(stamp=stamp, seq=self._next_seq("cmd_velocity"), v_mps=v, omega_radps=w, tick=tick,
                                confirmed_seq=self._seq.get("places_confirmed", 0) - 1,
                                deleted_seq=self._seq.get("places_deleted", 0) - 1,
                                links_deleted_seq=self._seq.get("links_deleted", 0) - 1,
-                               relocalisations=self.core.relocalisations)
+                               relocalisations=self.core.relocalisations,
+                               final=self._status is not None and self._status[0])
 
 
 # The map events, logged before they go out and published again after a restart. A repeat is harmless:

@@ -35,6 +35,8 @@ class RouteCommander:
         sensor_sim's tick, to turn stamps into ticks.
     until_tick : int, optional
         Answer no tick from this one on (a lockstep run then waits there).
+    final_tick : int, optional
+        Mark the command of this tick as the run's last (``VelocityCommand.final``): the simulator ends there.
     on_pose : callable, optional
         Called with every pose message received (in zenoh's thread), e.g. to record a trajectory.
     """
@@ -42,6 +44,7 @@ class RouteCommander:
     def __init__(self, session: zenoh.Session, waypoints: np.ndarray, *, robot: str = topics.DEFAULT_ROBOT,
                  source: str = "truth", origin: tuple[float, float] = (0.0, 0.0), dt_s: float = 0.1,
                  loop: bool = True, params: RouteParams = RouteParams(), until_tick: int | None = None,
+                 final_tick: int | None = None,
                  on_pose: Callable[[TruthPose | DeadReckonedPose], None] | None = None) -> None:
         if source not in ("truth", "dr"):
             raise ValueError(f"source must be 'truth' or 'dr', got {source!r}")
@@ -51,6 +54,7 @@ class RouteCommander:
         self._dt = dt_s
         self._on_pose = on_pose
         self._until = until_tick
+        self._final = final_tick
         self._lock = threading.Lock()
         self._seq = 0
         self.last_tick = -1  # the latest tick answered
@@ -84,7 +88,7 @@ class RouteCommander:
             self._last_cmd = (v, w)
             self.last_tick = tick
             self._pub.put(self._enc.encode(VelocityCommand(stamp=msg.stamp, seq=self._seq, v_mps=v, omega_radps=w,
-                                                           tick=tick)))
+                                                           tick=tick, final=tick == self._final)))
             if self.first_command_at is None:
                 self.first_command_at = time.monotonic()
             self._seq += 1

@@ -76,7 +76,7 @@ def run(session: zenoh.Session, world: World, params: SensorSimNodeParams, *,
         cmds = _Commands()
         node.detail.update(tick=0, sim_time_s=0.0, started=0, lockstep=float(params.lockstep), rtf=params.rtf,
                            lockstep_timeouts=0, stale_commands=0, commands=0, collisions=0, scans=0,
-                           rtf_achieved=0.0, seed=params.seed)
+                           rtf_achieved=0.0, seed=params.seed, ended=0)
         node.subscribe(topics.cmd_velocity(robot), VelocityCommand, cmds.on_cmd_velocity)
         try:
             return _simulate(node, core.SimModel(world, params.sim), params, cmds, out, stop)
@@ -141,6 +141,11 @@ def _simulate(node: Node, model: core.SimModel, params: SensorSimNodeParams, cmd
     while not stop.is_set() and cmds.started:
         now = time.monotonic()
         if now >= wall_end:
+            break
+        if cmds.final_tick is not None and cmds.final_tick <= state.tick:
+            # the run's last command is in: no tick after it, so a run ends where the in-process loop does
+            log.info("%s: the last command of the run answered tick %d: no further tick", SERVICE, cmds.final_tick)
+            node.detail["ended"] = 1
             break
         if params.lockstep:
             cmd = cmds.take(state.tick)
@@ -224,10 +229,13 @@ class _Commands:
         self.count = 0
         self.stale = 0
         self.timeouts = 0
+        self.final_tick: int | None = None  # the tick the run's last command answered
 
     def on_cmd_velocity(self, msg: VelocityCommand) -> None:
         self.count += 1
         self.started = True
+        if msg.final and msg.tick >= self.tick and (self.final_tick is None or msg.tick < self.final_tick):
+            self.final_tick = msg.tick
         self.latest = (msg.v_mps, msg.omega_radps)
         self.latest_wall = time.monotonic()
         if msg.tick < self.tick:

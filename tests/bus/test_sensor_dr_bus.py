@@ -171,6 +171,29 @@ def test_lockstep_never_waits_forever(hub, processes):
     assert poses[5].x_m == poses[1].x_m  # stopped on every timeout
 
 
+def test_the_last_command_ends_the_run(hub, processes):
+    """A command marked final (the explorer's once exploration is complete) is the last tick computed:
+    the commander would answer more, and the simulator stops there and exits by itself."""
+    session, endpoint = hub
+    robot = f"final{os.getpid()}"
+    watcher = AliveWatcher(session, robot)
+    truth = Collector(session, topics.truth_pose(robot), TruthPose)
+    commander = RouteCommander(session, ROUTE, robot=robot, origin=WORLD.start[:2], final_tick=30)
+    try:
+        sim, _dr = _start(processes, endpoint, robot, "--lockstep", "--lockstep-timeout-s", "0.3")
+        assert watcher.wait_alive(["sensor_sim"], 30)
+        assert wait_until(lambda: _health(session, robot, "sensor_sim").detail["ended"] == 1, 30)
+        h = _health(session, robot, "sensor_sim")
+        assert sim.wait(15) == 0
+    finally:
+        commander.close()
+        truth.close()
+        watcher.close()
+    assert h.detail["tick"] == 30 and h.detail["lockstep_timeouts"] == 0
+    assert max(m.seq for m in truth.snapshot()) == 30
+    assert commander.last_tick == 30
+
+
 def test_dead_reckoning_reports_gaps_in_health(hub, processes):
     session, endpoint = hub
     robot = f"gaps{os.getpid()}"

@@ -92,6 +92,34 @@ def test_a_run_on_the_bus_is_the_in_process_loop(tmp_path):
     assert written == loop.relaxed  # and the map at rest is the same minimum of those links
 
 
+# two rooms joined by a door: explored to the end in about 250 s of simulated time
+TWO_ROOMS = {"name": "two-rooms", "walls": [[0, 0, 8, 0], [8, 0, 8, 5], [8, 5, 0, 5], [0, 5, 0, 0], [4, 0, 4, 2],
+                                            [4, 3, 4, 5]],
+             "start": [1.5, 2.5, 0.0], "magnetic_disturbances": [], "routes": {}}
+
+
+def test_a_run_on_the_bus_ends_where_the_loop_does(tmp_path):
+    """The explorer's last command ends the simulation at the tick the exploration became complete:
+    no tick, scan or link after it, so the whole run is the loop's, to its end."""
+    from services.launch.inprocess import InProcessParams, run_world
+
+    world = tmp_path / "two-rooms.json"
+    world.write_text(json.dumps(TWO_ROOMS))
+    out = tmp_path / "run"
+    done = _run(out, "--world", str(world), "--seed", "0")
+    assert done.returncode == 0, done.stderr[-3000:]
+    loop = run_world(str(world), InProcessParams(seed=0, max_sim_time_s=3000.0))
+    assert loop.complete and len(loop.links) > 20
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["exploration_complete"] and summary["sim_time_s"] == pytest.approx(
+        loop.complete_tick * InProcessParams().sim.dt_s)
+    bus = [json.loads(line) for line in (out / "links_measured.jsonl").read_text().splitlines()]
+    assert [(b["from_id"], b["to_id"], b["d_m"], b["theta_rad"], b["steps"]) for b in bus] == [
+        (lk.from_id, lk.to_id, lk.d_m, lk.theta_rad, lk.steps) for lk in loop.links]
+    written = {p["id"]: (p["x"], p["y"]) for p in json.loads((out / "map.json").read_text())["places"]}
+    assert written == loop.relaxed
+
+
 def _stored_places(store: Path) -> int:
     """Places the relaxer has stored so far (read-only; 0 while the store does not exist yet)."""
     if not store.exists():
