@@ -43,6 +43,7 @@ from services.explorer import (
     PlaceFix,
 )
 from services.place_recognizer import PlaceRecognizer, PlaceRecognizerParams, RecognizerOutput
+from services.place_recognizer.history import POSE_HISTORY, PoseHistory
 from services.relaxer.online import OnlineMap, OnlineParams
 from services.sensor_sim import core as sim_core
 from sim.world import World, load_world
@@ -158,7 +159,8 @@ class InProcessRun:
         self._prev_scan: SonarScan | None = None
         self._prev_fix: PlaceFix | None = None
         self._relocalised = 0  # the explorer's relocalisation requests the recognizer has acted on
-        self._since_scan: list[DeadReckonedPose] = []  # the dead-reckoned poses since the last scan
+        self._history = PoseHistory(POSE_HISTORY)  # as the recognizer's node keeps them
+        self._stepped_stamp: float | None = None  # the pose stamp of the last scan stepped
         self._state, frame = sim_core.start(self.model, self.rng)
         self._command = self._handle(frame)
 
@@ -214,8 +216,8 @@ class InProcessRun:
             if self.explorer.relocalisations > self._relocalised:  # asked for by tick k - 1's step
                 self._relocalised = self.explorer.relocalisations
                 self.recognizer.relocalise()
-            out = self.recognizer.step(dr, frame.sonar, [b for b in self._since_scan if b.stamp < dr.stamp])
-            self._since_scan = []
+            out = self.recognizer.step(dr, frame.sonar, self._history.between(self._stepped_stamp, dr.stamp))
+            self._stepped_stamp = dr.stamp
             self._links(out, frame.tick)
             loc = out.localization
             r.scans.append(ScanRecord(frame.tick, truth, (dr.compass.x_m, dr.compass.y_m), loc.place_id,
@@ -250,12 +252,8 @@ class InProcessRun:
             self._dr, out = dr_core.step(self._dr, odometry)
             poses += out
         self._timings["dead_reckoning"] += time.perf_counter() - t0
-        for pose in poses:  # as the recognizer's node keeps them: one a stamp, the latest
-            if self._since_scan and self._since_scan[-1].stamp >= pose.stamp:
-                if self._since_scan[-1].stamp == pose.stamp:
-                    self._since_scan[-1] = pose
-                continue
-            self._since_scan.append(pose)
+        for pose in poses:
+            self._history.add(pose)
         if not poses:
             raise RuntimeError(f"dead reckoning gave no pose at {compass.stamp:.1f} s")
         return poses[-1]

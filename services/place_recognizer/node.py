@@ -4,12 +4,10 @@ from __future__ import annotations
 
 import argparse
 import bisect
-import itertools
 import logging
 import math
 import threading
 import time
-from collections import deque
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -41,6 +39,7 @@ from services.place_recognizer.core import (
 )
 from services.place_recognizer.deviation import DeviationParams
 from services.place_recognizer.grid import PlacedScan
+from services.place_recognizer.history import POSE_HISTORY, PoseHistory
 from services.runtime import Node, positive_float
 from services.runtime.checkpoint import Checkpoint, EventLog
 from services.runtime.saved_map import (
@@ -59,7 +58,7 @@ log = logging.getLogger("relaxmap.place_recognizer")
 class PlaceRecognizerNodeParams:
     follow_map: bool = True  # move place centres to the relaxed coordinates of map/update
     wait_map: bool = True  # following the map, the next input waits for the update that holds the last link
-    pose_history: int = 512  # dead-reckoned poses kept to pair with scans and confirmations
+    pose_history: int = POSE_HISTORY  # dead-reckoned poses kept to pair with scans and confirmations
     max_pending_scans: int = 64  # scans held while their pose is awaited (the oldest are dropped)
     dt_s: float = 0.1  # sensor_sim's tick: a message stamped t belongs to tick round(t / dt_s)
     order_timeout_s: float = 0.5  # wall time an input waits for the inputs that must come first
@@ -194,8 +193,7 @@ class RecognizerShell:
         self._publish_belief = publish_belief
         self._publish_link = publish_link
         self._clock = clock
-        self._stamps: deque[float] = deque()
-        self._poses: deque[DeadReckonedPose] = deque()
+        self._history = PoseHistory(params.pose_history)
         self._stepped_stamp: float | None = None  # the pose stamp of the last scan stepped
         self._scans: list[tuple[SonarScan, float]] = []  # (scan, wall time of arrival), in stamp order
         self._events: list[tuple[PlaceConfirmed | PlaceDeleted, float]] = []  # in arrival order
@@ -246,7 +244,7 @@ class RecognizerShell:
     def checkpoint(self) -> RecognizerCheckpoint:
         n = self.params.checkpoint_poses
         return RecognizerCheckpoint(
-            core=self.core.snapshot(), poses=list(self._poses)[-n:], applied=sorted(self._applied),
+            core=self.core.snapshot(), poses=self._history.poses[-n:], applied=sorted(self._applied),
             cmd_tick=self._cmd_tick, sensor_tick=self._sensor_tick, done_tick=self._done_tick,
             belief_seq=self._belief_seq, link_seq=self._link_seq, last_scan_seq=self._last_scan_seq,
             latest_stamp=self.latest_stamp, counts=dict(self.counts), event_seqs=tuple(self._event_applied),
@@ -255,8 +253,7 @@ class RecognizerShell:
     def resume(self, ckpt: RecognizerCheckpoint, signatures: dict[int, PlaceSignature]) -> None:
         """Go on from a checkpoint: its places, signatures, belief and links in progress."""
         self.core.restore_snapshot(ckpt.core, signatures)
-        self._poses = deque(ckpt.poses)
-        self._stamps = deque(p.stamp for p in ckpt.poses)
+        self._history = PoseHistory(self.params.pose_history, ckpt.poses)
         self._applied = set(ckpt.applied)
         self._cmd_tick, self._sensor_tick, self._done_tick = ckpt.cmd_tick, ckpt.sensor_tick, ckpt.done_tick
         self._belief_seq, self._link_seq, self._last_scan_seq = ckpt.belief_seq, ckpt.link_seq, ckpt.last_scan_seq
@@ -278,16 +275,9 @@ class RecognizerShell:
 
     # -- inputs ---------------------------------------------------------------------------------
     def on_dr_pose(self, msg: DeadReckonedPose) -> None:
-        if self._stamps and msg.stamp < self._stamps[-1]:
+        if self._history.latest_stamp is not None and msg.stamp < self._history.latest_stamp:
             return  # older than one already kept: dead reckoning repeats only its first pose
-        if self._stamps and msg.stamp == self._stamps[-1]:
-            self._poses[-1] = msg
-        else:
-            self._stamps.append(msg.stamp)
-            self._poses.append(msg)
-            while len(self._poses) > self.params.pose_history:
-                self._stamps.popleft()
-                self._poses.popleft()
+        self._history.add(msg)
         self.latest_stamp = msg.stamp
         self.drain()
 
@@ -369,8 +359,8 @@ class RecognizerShell:
                 j = self._tick(ev.stamp)
                 scan_first = bool(self._scans) and self._tick(self._scans[0][0].stamp) <= j
                 if not scan_first:
-                    ready = (self._sensor_tick >= j + 1 and self._scan_heard >= self._scan_due and bool(self._stamps)
-                             and self._stamps[-1] >= ev.stamp - 1e-9 and (self._cmd_tick >= j or self._cmd_tick < 0))
+                    ready = (self._sensor_tick >= j + 1 and self._scan_heard >= self._scan_due
+                             and self._history.reaches(ev.stamp) and (self._cmd_tick >= j or self._cmd_tick < 0))
                     if (ready and self._map_in()) or now - max(since, self._linked) >= timeout:
                         self.counts["order_timeouts"] += not ready
                         self._give_up_waiting()
@@ -385,11 +375,11 @@ class RecognizerShell:
                 scan, since = self._scans[0]
                 t = self._tick(scan.stamp)
                 events_first = bool(self._events) and self._tick(self._events[0][0].stamp) < t
-                has_pose = bool(self._stamps) and self._stamps[-1] >= scan.stamp - 1e-9
+                has_pose = self._history.reaches(scan.stamp)
                 events_in = all(h >= d for h, d in zip(self._event_heard, self._event_due))
                 ready = has_pose and (t == 0 or (self._cmd_tick >= t - 1 and events_in))
                 if not events_first and ((ready and self._map_in()) or (now - max(since, self._linked) >= timeout
-                                                                and self._stamps)):
+                                                                and len(self._history) > 0)):
                     self.counts["order_timeouts"] += not ready
                     self._give_up_waiting()
                     self._scans.pop(0)
@@ -435,21 +425,13 @@ class RecognizerShell:
                      "robot, no link from the place it was at", SERVICE, due[-1], tick)
 
     # -- processing -----------------------------------------------------------------------------
-    def _pose_at(self, stamp: float) -> DeadReckonedPose | None:
-        """The pose of the same stamp, else the latest before it; None when all kept are later."""
-        i = bisect.bisect_right(self._stamps, stamp + 1e-9)
-        return self._poses[i - 1] if i > 0 else None
-
     def _step(self, scan: SonarScan) -> None:
         self._last_scan_seq = max(self._last_scan_seq, scan.seq)
-        dr = self._pose_at(scan.stamp)
+        dr = self._history.at(scan.stamp)
         if dr is None:
             self.counts["unpaired_scans"] += 1
             return
-        since = self._stepped_stamp
-        i = bisect.bisect_right(self._stamps, since + 1e-9) if since is not None else len(self._stamps)
-        j = bisect.bisect_left(self._stamps, dr.stamp - 1e-9)
-        out = self.core.step(dr, scan, list(itertools.islice(self._poses, i, max(i, j))))
+        out = self.core.step(dr, scan, self._history.between(self._stepped_stamp, dr.stamp))
         self._stepped_stamp = dr.stamp
         self.counts["scans"] += 1
         loc = out.localization
@@ -476,9 +458,9 @@ class RecognizerShell:
             self._applied.add(self._event_key(ev))
             self._commit([])
             return
-        dr = self._pose_at(ev.stamp)
+        dr = self._history.at(ev.stamp)
         if dr is None:
-            dr = self._poses[0] if self._poses else None
+            dr = self._history.first
         if dr is None:
             return
         self.counts["places"] += 1
