@@ -48,9 +48,11 @@ class PlaceRecognizerParams:
     # sonar looked from more than on the place, and would drown the walls
     match_axes: str = "min"  # a place's score from its x and y scores: "min" (both must fit) or "mean"
     match_sharpness: float = 25.0  # beta: likelihood exp(beta (M - 1)) of a match score M
-    repeat_scan_m: float = 0.05  # a scan taken within this of the last one's position ...
-    repeat_scan_rad: float = 0.17  # ... and heading sees nearly what it saw (a robot standing still) ...
-    repeat_scan_weight: float = 0.2  # ... and counts as this fraction of an observation (tempered likelihood):
+    repeat_scan_m: float = 0.15  # a scan taken within this of a scan counted in full ...
+    repeat_scan_memory_s: float = 20.0  # ... in the last this many simulated seconds, whatever its heading
+    # (a robot standing still, turning on the spot or rocking back and forth: its sonar ring sees the
+    # same walls from the same spot) ...
+    repeat_scan_weight: float = 0.2  # ... counts as this fraction of an observation (tempered likelihood):
     # taken as independent, 15 s of a stalled robot beside a look-alike moved the belief 7 m
     new_place_match: float = 0.7  # virtual match score of the "no known place" hypothesis
     confirmed_probability: float = 0.95  # belief in a place at the moment it is confirmed
@@ -246,6 +248,7 @@ class RecognizerState(msgspec.Struct, frozen=True):
     suspect: int = -1  # see PlaceRecognizer.relocalise
     unanchored: int = 0
     deviation_place: int = NO_PLACE  # the last place a scan found the robot at
+    full_scans: list[tuple[float, float, float]] = []  # see PlaceRecognizer._scan_weight
 
 
 class PlaceRecognizer:
@@ -307,7 +310,7 @@ class PlaceRecognizer:
         self._last_xy: tuple[float, float] | None = None
         self._deviation_place = NO_PLACE  # the last place a scan found the robot at: between places
         # the compass's deviation there turns the dead-reckoned motion into the map's frame
-        self._last_scan_pose: tuple[float, float, float] | None = None  # where the last scan was matched
+        self._full_scans: deque[tuple[float, float, float]] = deque()  # (x, y, stamp) of the scans counted in full
         self._inside: _Mark | None = None
         self._departure: _Mark | None = None
         self._pending: _Pending | None = None
@@ -373,17 +376,18 @@ class PlaceRecognizer:
         return RecognizerOutput(localization=self.localization(), links=links, diagnostics=diag)
 
     def _scan_weight(self, dr: DeadReckonedPose) -> float:
-        """How much of an observation this scan is: ``repeat_scan_weight`` when the robot has not
-        moved or turned since the last scan (its sonar sees the same echoes again, and counting them
-        as independent evidence multiplies a look-alike's small edge scan after scan), else 1."""
+        """How much of an observation this scan is: ``repeat_scan_weight`` when it was taken within
+        ``repeat_scan_m`` of a scan counted in full in the last ``repeat_scan_memory_s`` (the robot has
+        not moved on: its sonar sees the same echoes again, and counting them as independent evidence
+        multiplies a look-alike's small edge scan after scan), else 1 (and it is remembered)."""
         p = self.params
-        pose = (dr.compass.x_m, dr.compass.y_m, dr.compass.heading_rad)
-        last, self._last_scan_pose = self._last_scan_pose, pose
-        if last is None:
-            return 1.0
-        turned = abs(math.remainder(pose[2] - last[2], math.tau))
-        if math.hypot(pose[0] - last[0], pose[1] - last[1]) < p.repeat_scan_m and turned < p.repeat_scan_rad:
+        x, y, t = dr.compass.x_m, dr.compass.y_m, dr.stamp
+        full = self._full_scans
+        while full and t - full[0][2] > p.repeat_scan_memory_s:
+            full.popleft()
+        if any(math.hypot(x - fx, y - fy) < p.repeat_scan_m for fx, fy, _ in full):
             return p.repeat_scan_weight
+        full.append((x, y, t))
         return 1.0
 
     def relocalise(self) -> None:
@@ -537,7 +541,7 @@ class PlaceRecognizer:
             rejected_traversals=self.rejected_traversals, signature_ids=list(self._signatures),
             rejected_arrivals=self.rejected_arrivals, deviation=self.deviations.snapshot(),
             relocalisations=self.relocalisations, suspect=self._suspect, unanchored=self._unanchored,
-            deviation_place=self._deviation_place)
+            deviation_place=self._deviation_place, full_scans=list(self._full_scans))
 
     def signatures(self) -> dict[int, PlaceSignature]:
         """Each place's signature; a signature's ``logodds`` is a new array whenever it has grown."""
@@ -560,6 +564,7 @@ class PlaceRecognizer:
         self.relocalisations = state.relocalisations
         self._suspect, self._unanchored = state.suspect, state.unanchored
         self._deviation_place = state.deviation_place
+        self._full_scans = deque(tuple(f) for f in state.full_scans)
         self.deviations = DeviationMap(self.params.deviation)
         if state.deviation is not None:
             self.deviations.restore_snapshot(state.deviation)

@@ -17,22 +17,23 @@ STEP_M = 0.05  # odometry step length
 
 
 class _Drive:
-    """Perfect dead reckoning along a polyline, one sonar scan every 0.1 m."""
+    """Perfect dead reckoning along a polyline, one sonar scan every 0.1 m, a second apart."""
 
     def __init__(self, rec: PlaceRecognizer):
-        self.rec, self.steps, self.path, self.prev = rec, 0, 0.0, None
+        self.rec, self.steps, self.path, self.prev, self.stamp = rec, 0, 0.0, None, -1.0
         self.places: dict[int, tuple[float, float]] = {}
         self.links = []
         self.at: list[int] = []
 
-    def dr(self, x, y) -> DeadReckonedPose:
+    def dr(self, x, y, heading=0.0) -> DeadReckonedPose:
+        self.stamp += 1.0
         if self.prev is not None:
             d = float(np.hypot(x - self.prev[0], y - self.prev[1]))
             self.path += d
             self.steps += int(round(d / STEP_M))
         self.prev = (x, y)
-        pose = Pose2(x_m=x, y_m=y, heading_rad=0.0)
-        return DeadReckonedPose(stamp=0.0, seq=0, compass=pose, raw=pose, steps=self.steps, path_length_m=self.path)
+        pose = Pose2(x_m=x, y_m=y, heading_rad=heading)
+        return DeadReckonedPose(stamp=self.stamp, seq=0, compass=pose, raw=pose, steps=self.steps, path_length_m=self.path)
 
     def visit(self, x, y, *, confirm_new: bool) -> None:
         dr = self.dr(x, y)
@@ -350,33 +351,64 @@ def test_equal_scores_keep_the_predicted_offset():
     assert best_shift.tolist() == [-2, 0]
 
 
-def _scans_until_taken(weight: float, *, still: bool) -> int:
-    """Place 0 is confirmed at (1.5, 1.5); dead reckoning then drives 5 m east and says the robot
-    stays there while the scans come back from place 0. Returns the scans until the belief holds
-    place 0 above 0.5 (100 if never)."""
-    rec = PlaceRecognizer(PlaceRecognizerParams(relocalise_std_m=math.inf, uniform_transition=1e-3,
-                                                arrival_gate_m=math.inf, repeat_scan_weight=weight))
+def _confirm_and_drive_east(rec: PlaceRecognizer) -> _Drive:
+    """Place 0 confirmed at (1.5, 1.5), then 5 m east, a scan every 0.2 m."""
     d = _Drive(rec)
     dr = d.dr(1.5, 1.5)
     rec.step(dr, scan_at(1.5, 1.5, 0.0, WALLS)[0])
     rec.add_place(0, 1.5, 1.5, dr)
     for k in range(1, 26):
         rec.step(d.dr(1.5 + 0.2 * k, 1.5), scan_at(1.5 + 0.2 * k, 1.5, 0.0, WALLS)[0])
+    return d
+
+
+def _scans_until_taken(weight: float, motion: str) -> int:
+    """Place 0 is confirmed at (1.5, 1.5); dead reckoning then drives 5 m east, and the scans come
+    back from place 0 while it says the robot ``motion``: "drives" on east (0.2 m a scan, as the
+    simulator's distance trigger has them), stands "still", is "turning" on the spot or "rocking" 0.3 m
+    back and forth. Returns the scans until the belief holds place 0 above 0.5 (100 if never)."""
+    rec = PlaceRecognizer(PlaceRecognizerParams(relocalise_std_m=math.inf, uniform_transition=1e-3,
+                                                arrival_gate_m=math.inf, repeat_scan_weight=weight))
+    d = _confirm_and_drive_east(rec)
     for n in range(1, 101):
-        x = 6.5 if still else 6.5 + 0.1 * n  # standing still, or dead reckoning driving on
-        rec.step(d.dr(x, 1.5), scan_at(1.5, 1.5, 0.0, WALLS)[0])
+        x = {"drives": 6.5 + 0.2 * n, "rocking": 6.5 + 0.3 * (n % 2)}.get(motion, 6.5)
+        heading = 0.7 * n if motion == "turning" else 0.0
+        rec.step(d.dr(x, 1.5, heading), scan_at(1.5, 1.5, heading, WALLS)[0])
         if rec.belief.ids.size and rec.belief.probs[rec.belief.index(0)] > 0.5:
             return n
     return 100
 
 
-def test_a_robot_standing_still_weighs_its_repeated_scans_less():
+def test_a_robot_that_does_not_move_on_weighs_its_repeated_scans_less():
     """The same echoes seen again from the same spot are not new evidence: a look-alike 5 m away
-    takes the belief of a stalled robot after several times as many scans as of a moving one."""
+    takes the belief of a robot standing still, turning on the spot or rocking back and forth after
+    several times as many scans as of a moving one."""
     # a moving robot's scans count in full, whatever the weight
-    assert _scans_until_taken(0.2, still=False) == _scans_until_taken(1.0, still=False) < 100
-    still, untempered = _scans_until_taken(0.2, still=True), _scans_until_taken(1.0, still=True)
-    assert still >= 3 * untempered, (still, untempered)
+    assert _scans_until_taken(0.2, "drives") == _scans_until_taken(1.0, "drives") < 100
+    for motion in ("still", "turning", "rocking"):
+        tempered, untempered = _scans_until_taken(0.2, motion), _scans_until_taken(1.0, motion)
+        assert tempered > 2 * untempered, (motion, tempered, untempered)
+
+
+def test_a_restored_recognizer_goes_on_identically(tmp_path):
+    """A snapshot taken while the robot stands still, restored into a new recognizer: the scans that
+    follow weigh the same (the scans counted in full are part of the state), and so does the belief."""
+    from services.place_recognizer.core import RecognizerState
+    from services.runtime.checkpoint import Checkpoint
+
+    params = PlaceRecognizerParams(relocalise_std_m=math.inf, uniform_transition=1e-3, arrival_gate_m=math.inf)
+    a = PlaceRecognizer(params)
+    d = _confirm_and_drive_east(a)
+    saved = Checkpoint(tmp_path / "recognizer", RecognizerState)
+    saved.save(a.snapshot())
+    state = saved.load()
+    b = PlaceRecognizer(params)
+    b.restore_snapshot(state, a.signatures())
+    for _ in range(6):  # standing still, place 0's echoes coming back
+        dr = d.dr(6.5, 1.5)
+        out_a, out_b = a.step(dr, scan_at(1.5, 1.5, 0.0, WALLS)[0]), b.step(dr, scan_at(1.5, 1.5, 0.0, WALLS)[0])
+        assert out_a.localization == out_b.localization
+        np.testing.assert_array_equal(a.belief.probs, b.belief.probs)
 
 
 @pytest.mark.parametrize("enabled", [True, False])
