@@ -23,7 +23,10 @@ class PoseHistory:
     >>> h = PoseHistory(3)
     >>> for stamp, x in ((0.0, 0.0), (0.1, 1.0), (0.1, 2.0), (0.0, 9.0), (0.2, 3.0), (0.3, 4.0)):
     ...     at = Pose2(x_m=x, y_m=0.0, heading_rad=0.0)
-    ...     h.add(DeadReckonedPose(stamp=stamp, seq=0, compass=at, raw=at, steps=0, path_length_m=0.0))
+    ...     kept = h.add(DeadReckonedPose(stamp=stamp, seq=0, compass=at, raw=at, steps=0, path_length_m=0.0))
+    ...     if not kept:
+    ...         print(f"dropped {stamp}")
+    dropped 0.0
     >>> [(p.stamp, p.compass.x_m) for p in h.poses]
     [(0.1, 2.0), (0.2, 3.0), (0.3, 4.0)]
     >>> [p.stamp for p in h.between(0.1, 0.3)], h.at(0.25).stamp, h.at(0.05)
@@ -36,13 +39,16 @@ class PoseHistory:
         for pose in poses:
             self.add(pose)
 
-    def add(self, pose: DeadReckonedPose) -> None:
+    def add(self, pose: DeadReckonedPose) -> bool:
+        """Keep ``pose``; False when it is older than the newest kept, and dropped."""
         if self._stamps and pose.stamp <= self._stamps[-1]:
-            if pose.stamp == self._stamps[-1]:
-                self._poses[-1] = pose
-            return
+            if pose.stamp < self._stamps[-1]:
+                return False
+            self._poses[-1] = pose
+            return True
         self._stamps.append(pose.stamp)
         self._poses.append(pose)
+        return True
 
     def __len__(self) -> int:
         return len(self._poses)
@@ -54,10 +60,6 @@ class PoseHistory:
     @property
     def first(self) -> DeadReckonedPose | None:
         return self._poses[0] if self._poses else None
-
-    @property
-    def latest_stamp(self) -> float | None:
-        return self._stamps[-1] if self._stamps else None
 
     def reaches(self, stamp: float) -> bool:
         """Whether a pose of ``stamp`` or later is kept."""

@@ -275,9 +275,8 @@ class RecognizerShell:
 
     # -- inputs ---------------------------------------------------------------------------------
     def on_dr_pose(self, msg: DeadReckonedPose) -> None:
-        if self._history.latest_stamp is not None and msg.stamp < self._history.latest_stamp:
+        if not self._history.add(msg):
             return  # older than one already kept: dead reckoning repeats only its first pose
-        self._history.add(msg)
         self.latest_stamp = msg.stamp
         self.drain()
 
