@@ -155,3 +155,45 @@ def test_negligible_hypotheses_are_not_moved_as_sources():
     big = every.probs > 1e-6
     np.testing.assert_allclose(some.offsets[big], every.offsets[big], atol=1e-9)
     np.testing.assert_allclose(some.none_xy, every.none_xy, atol=1e-9)
+
+
+def _corridor(probs):
+    """Places 0-5 on a line 1 m apart, the robot at their centres with the given masses."""
+    n = 6
+    return B.Belief(ids=np.arange(n), centres=np.c_[np.arange(n, dtype=float), np.zeros(n)],
+                    probs=np.asarray(probs, float), offsets=np.zeros((n, 2)), offset_vars=np.full((n, 2), 0.01),
+                    none_prob=0.0, none_xy=np.zeros(2), none_var_m2=0.0)
+
+
+def test_none_follows_the_hypothesis_that_gives_it_the_most_mass():
+    """Leaving a corridor of look-alike places, the robot is at place 2 (0.8) or at its neighbours.
+    Merged, "none" sits between them, wider than any, and brings the robot back nearer place 3; gated,
+    it is place 2's own track and the neighbours' mass is dropped."""
+    b = _corridor([0.0, 0.05, 0.8, 0.15, 0.0, 0.0])
+    north, south = np.array([0.0, 1.0]), np.array([0.0, -1.0])
+    merged = B.predict(b, north, **MOTION)
+    gated = B.predict(b, north, **MOTION, none_gate_sd=3.0)
+    for out in (merged, gated):
+        assert out.none_prob > 0.99
+        assert out.probs.sum() + out.none_prob == pytest.approx(1.0)
+    # the kernel variance 0.01 + 0.02 + 0.1^2 = 0.04 a source: 1 m is 3.5 sd of two, beyond the gate
+    np.testing.assert_allclose(gated.none_xy, [2.0, 1.0], atol=1e-9)
+    assert gated.none_var_m2 == pytest.approx(0.03)
+    assert merged.none_xy[0] == pytest.approx(2.0 + 0.15 - 0.05, abs=1e-3)
+    assert merged.none_var_m2 == pytest.approx(0.03 + 0.5 * (0.8 * 0.1**2 + 0.15 * 0.9**2 + 0.05 * 1.1**2) / 1.0,
+                                               rel=1e-2)
+    back_merged = B.predict(merged, south, **MOTION)
+    back_gated = B.predict(gated, south, **MOTION, none_gate_sd=3.0)
+    # back where it left: gated, place 2 holds 0.89 and its neighbours 2e-4 each; merged, 0.64 and
+    # 0.049 at place 3 (the wider "none" hands more of its mass on, and to the neighbours)
+    assert back_gated.probs[2] > 0.85 and back_merged.probs[2] < 0.7
+    assert back_gated.probs[3] < 1e-3 and back_merged.probs[3] > 0.04
+
+
+def test_a_gate_that_takes_every_source_merges_them_all():
+    b = _corridor([0.1, 0.2, 0.3, 0.2, 0.1, 0.1])
+    merged = B.predict(b, np.array([0.3, 2.0]), **MOTION)
+    wide = B.predict(b, np.array([0.3, 2.0]), **MOTION, none_gate_sd=100.0)
+    np.testing.assert_allclose(wide.none_xy, merged.none_xy, atol=1e-12)
+    assert wide.none_var_m2 == pytest.approx(merged.none_var_m2)
+    np.testing.assert_allclose(wide.probs, merged.probs, atol=1e-15)
