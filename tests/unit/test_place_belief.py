@@ -176,7 +176,7 @@ def test_none_follows_the_hypothesis_that_gives_it_the_most_mass():
     for out in (merged, gated):
         assert out.none_prob > 0.99
         assert out.probs.sum() + out.none_prob == pytest.approx(1.0)
-    # the kernel variance 0.01 + 0.02 + 0.1^2 = 0.04 a source: 1 m is 3.5 sd of two, beyond the gate
+    # each source's position variance is 0.01 + 0.02 = 0.03 a axis: 1 m is 4.1 sd of two, beyond the gate
     np.testing.assert_allclose(gated.none_xy, [2.0, 1.0], atol=1e-9)
     assert gated.none_var_m2 == pytest.approx(0.03)
     assert merged.none_xy[0] == pytest.approx(2.0 + 0.15 - 0.05, abs=1e-3)
