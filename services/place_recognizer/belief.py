@@ -93,8 +93,9 @@ def predict(belief: Belief, displacement_xy: np.ndarray, *, transition_std_m: fl
     moment-matched mixture of the rest. Merged, the mass of look-alike places along a corridor would
     drag its mean towards them and widen it, and hand the robot on to one of them (docs/places.md,
     *"None" follows one track*); an infinite gate merges every source. Only hypotheses at least
-    ``min_source_probability`` probable are moved as sources (the others' mass is dropped before normalising): most places of a
-    large map hold next to nothing, and moving every one to every other costs ``O(P^2)``.
+    ``min_source_probability`` probable are moved as sources (the others' mass is dropped before
+    normalising): most places of a large map hold next to nothing, and moving every one to every other
+    costs ``O(P^2)``.
     """
     d = np.asarray(displacement_xy, dtype=float)
     dist = float(np.hypot(*d))
