@@ -56,9 +56,6 @@ class Belief:
         return int(hits[0])
 
 
-_GATE_FLOOR_M2 = 1e-4  # the variance of two positions held exactly, in the "none" gate (1 cm)
-
-
 def _logsumexp(a: np.ndarray, axis: int) -> np.ndarray:
     m = np.max(a, axis=axis, keepdims=True)
     return (m + np.log(np.exp(a - m).sum(axis=axis, keepdims=True))).squeeze(axis)
@@ -67,7 +64,7 @@ def _logsumexp(a: np.ndarray, axis: int) -> np.ndarray:
 def predict(belief: Belief, displacement_xy: np.ndarray, *, transition_std_m: float,
             transition_var_per_m_m2: float, place_radius_m: float, uniform_transition: float,
             unknown_offset_var_m2: float, relocalise_std_m: float = math.inf,
-            min_source_probability: float = 1e-12, none_gate_sd: float = math.inf) -> Belief:
+            min_source_probability: float = 1e-12) -> Belief:
     """Move the belief by a dead-reckoned displacement (the prior of the next observation).
 
     Notes
@@ -86,16 +83,10 @@ def predict(belief: Belief, displacement_xy: np.ndarray, *, transition_std_m: fl
     infinite ``s_r`` spreads it evenly). Dead reckoning with a compass errs by a metre or two around a
     loop, not by ten: a look-alike place across the building gets no mass to jump to. That part
     carries no position, so it arrives at the centre with ``unknown_offset_var_m2``.
-    The offsets of each target are the moment-matched mixture of what arrives (mean and variance per
-    axis). "None" is one Gaussian too, but it follows the source that gives it the most mass: mass
-    from a source further from that one than ``none_gate_sd`` standard deviations (the two
-    positions' variances ``v_h + q |D|``, per axis, summed) is dropped, and the "none" position is the
-    moment-matched mixture of the rest. Merged, the mass of look-alike places along a corridor would
-    drag its mean towards them and widen it, and hand the robot on to one of them (docs/places.md,
-    *"None" follows one track*); an infinite gate merges every source. Only hypotheses at least
-    ``min_source_probability`` probable are moved as sources (the others' mass is dropped before
-    normalising): most places of a large map hold next to nothing, and moving every one to every other
-    costs ``O(P^2)``.
+    The offsets of each target (and the "none" position) are the moment-matched mixture of what
+    arrives (mean and variance per axis). Only hypotheses at least ``min_source_probability``
+    probable are moved as sources (the others' mass is dropped before normalising): most places of a
+    large map hold next to nothing, and moving every one to every other costs ``O(P^2)``.
     """
     d = np.asarray(displacement_xy, dtype=float)
     dist = float(np.hypot(*d))
@@ -131,12 +122,6 @@ def predict(belief: Belief, displacement_xy: np.ndarray, *, transition_std_m: fl
     var = np.maximum(second - mean**2, 0.0)
 
     wn = informed[:, P]
-    if math.isfinite(none_gate_sd) and wn.sum() > 0.0:
-        lead = int(np.argmax(wn))
-        spread = src_var.mean(axis=1)  # the sources' own position variances, without the kernel's width
-        near = ((pos - pos[lead]) ** 2).sum(axis=1) <= none_gate_sd**2 * (spread + spread[lead] + _GATE_FLOOR_M2)
-        wn = np.where(near, wn, 0.0)
-        prior[P] = wn.sum() + uniform[P]
     if wn.sum() > 0.0:
         none_xy = (wn[:, None] * pos).sum(axis=0) / wn.sum()
         none_second = (wn[:, None] * (src_var + (pos - none_xy) ** 2)).sum(axis=0) / wn.sum()

@@ -55,9 +55,6 @@ class PlaceRecognizerParams:
     repeat_scan_weight: float = 0.2  # ... counts as this fraction of an observation (tempered likelihood):
     # taken as independent, 15 s of a stalled robot beside a look-alike moved the belief 7 m
     new_place_match: float = 0.7  # virtual match score of the "no known place" hypothesis
-    none_gate_sd: float = 3.0  # "no known place" follows the hypothesis that gives it the most mass:
-    # mass arriving from hypotheses further from it than this many standard deviations is dropped
-    # (merged, look-alike places along a corridor drag it towards them; inf: merge every one)
     confirmed_probability: float = 0.95  # belief in a place at the moment it is confirmed
     settle_observations: int = 5  # observations at a revisited place before its link is measured (or on
     # leaving it): with 3, arrivals in open halls and empty rooms measured links with the offset still wrong
@@ -691,7 +688,7 @@ class PlaceRecognizer:
             self.belief, move, transition_std_m=p.transition_std_m,
             transition_var_per_m_m2=p.transition_var_per_m_m2, place_radius_m=p.place_radius_m,
             uniform_transition=p.uniform_transition, unknown_offset_var_m2=p.unknown_offset_var_m2,
-            relocalise_std_m=p.relocalise_std_m, none_gate_sd=p.none_gate_sd,
+            relocalise_std_m=p.relocalise_std_m,
         )
 
     def _depart_from_restored(self, dr: DeadReckonedPose) -> None:

@@ -366,13 +366,9 @@ def _scans_until_taken(weight: float, motion: str) -> int:
     """Place 0 is confirmed at (1.5, 1.5); dead reckoning then drives 5 m east, and the scans come
     back from place 0 while it says the robot ``motion``: "drives" on east (0.2 m a scan, as the
     simulator's distance trigger has them), stands "still", is "turning" on the spot or "rocking" 0.3 m
-    back and forth. Returns the scans until the belief holds place 0 above 0.5 (100 if never).
-    "None" merges every hypothesis here (``none_gate_sd`` infinite): the robot driving on, place 0's
-    mass leaves it with dead reckoning each scan, and a gated "none" drops it as far from its track,
-    so that only the relocalising fraction and the scans' weight decide, which is what is measured."""
+    back and forth. Returns the scans until the belief holds place 0 above 0.5 (100 if never)."""
     rec = PlaceRecognizer(PlaceRecognizerParams(relocalise_std_m=math.inf, uniform_transition=1e-3,
-                                                arrival_gate_m=math.inf, repeat_scan_weight=weight,
-                                                none_gate_sd=math.inf))
+                                                arrival_gate_m=math.inf, repeat_scan_weight=weight))
     d = _confirm_and_drive_east(rec)
     for n in range(1, 101):
         x = {"drives": 6.5 + 0.2 * n, "rocking": 6.5 + 0.3 * (n % 2)}.get(motion, 6.5)
