@@ -1,0 +1,171 @@
+"""Paired branches of one in-process run: copies continued with other recognizer parameters, wrong links counted."""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import dataclasses
+import json
+import math
+import sys
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.launch.inprocess import InProcessParams, InProcessRun, RunRecord
+from services.place_recognizer import PlaceRecognizerParams
+from sim.world import World, load_world
+
+
+@dataclass(frozen=True)
+class BranchWindow:
+    """One window: the run itself and each variant's copy, from the same state at ``start_s``.
+
+    Attributes
+    ----------
+    start_s, end_s : float
+        The window's simulated time.
+    base_wrong, variant_wrong : int, tuple of int
+        Links first measured wrong in the window (:func:`wrong_links`): by the run, by each variant.
+    base_links, variant_links : int, tuple of int
+        Links measured in the window (each pair of places once).
+    """
+
+    start_s: float
+    end_s: float
+    base_wrong: int
+    variant_wrong: tuple[int, ...]
+    base_links: int
+    variant_links: tuple[int, ...]
+
+
+def recognizer_variant(params: PlaceRecognizerParams, overrides: Mapping[str, object]) -> PlaceRecognizerParams:
+    """``params`` with ``overrides``; ``ValueError`` naming a field the recognizer does not have."""
+    known = {f.name for f in dataclasses.fields(PlaceRecognizerParams)}
+    unknown = sorted(set(overrides) - known)
+    if unknown:
+        raise ValueError(f"not a place recognizer parameter: {', '.join(unknown)}")
+    return dataclasses.replace(params, **overrides)
+
+
+def _window_links(record: RunRecord, since_tick: int, until_tick: int) -> dict[frozenset[int], object]:
+    """The first measurement of every pair of places linked in ``[since_tick, until_tick)``."""
+    out: dict[frozenset[int], object] = {}
+    for lk in record.links:
+        if since_tick <= lk.tick < until_tick:
+            out.setdefault(frozenset((lk.from_id, lk.to_id)), lk)
+    return out
+
+
+def wrong_links(record: RunRecord, since_tick: int, until_tick: int, *, threshold_m: float = 0.5) -> int:
+    """Links first measured in ``[since_tick, until_tick)`` between places still mapped whose
+    displacement is further than ``threshold_m`` from the places' true one (a link measured from or
+    to a place the robot was not at: a place is about 1 m from its neighbours)."""
+    places = record.places
+    n = 0
+    for lk in _window_links(record, since_tick, until_tick).values():
+        if lk.from_id not in places or lk.to_id not in places:
+            continue
+        measured = np.array((lk.d_m * math.cos(lk.theta_rad), lk.d_m * math.sin(lk.theta_rad)))
+        true = np.subtract(places[lk.to_id].true_xy, places[lk.from_id].true_xy)
+        n += bool(np.hypot(*(measured - true)) > threshold_m)
+    return n
+
+
+def continued(run: InProcessRun, recognizer: PlaceRecognizerParams, until_tick: int) -> InProcessRun:
+    """A copy of ``run`` (simulator, random generator, every core) with the recognizer's parameters
+    set to ``recognizer``, stepped to ``until_tick`` or its end; ``run`` itself is not touched."""
+    b = copy.deepcopy(run)
+    b.recognizer.params = recognizer
+    while b.record.ticks < until_tick and not b.done:
+        b.tick()
+    return b
+
+
+def branches(world: World, params: InProcessParams, variants: Sequence[Mapping[str, object]], *,
+             every_s: float, window_s: float, threshold_m: float = 0.5) -> Iterator[BranchWindow]:
+    """Run ``world`` in process; every ``every_s`` of simulated time copy the whole run (simulator,
+    its random generator, every core) once per variant, set the variant's recognizer parameters on
+    the copy and continue it ``window_s``; yield each window once the run has passed it.
+
+    Notes
+    -----
+    A whole run is chaotic: one sum rounded differently in its last bit sends the robot elsewhere,
+    and thirty seeds hardly tell a change of a few centimetres. A window compares the same robot in
+    the same building with the same map, for ``window_s``: the difference is the variant's. A variant
+    ``{}`` continues exactly as the run.
+    """
+    runs = [recognizer_variant(params.recognizer, v) for v in variants]
+    run = InProcessRun(world, params)
+    dt = params.sim.dt_s
+    width = int(round(window_s / dt))
+    pending: list[tuple[int, int, list[InProcessRun]]] = []
+    next_s = every_s
+    while True:
+        finished = run.done
+        if not finished:
+            run.tick()
+            if run.record.ticks * dt >= next_s - 1e-9:
+                next_s += every_s
+                start = run.record.ticks
+                copies = [continued(run, rp, start + width) for rp in runs]
+                pending.append((start, start + width, copies))
+        while pending and (finished or run.record.ticks >= pending[0][1]):
+            start, end, copies = pending.pop(0)
+            yield BranchWindow(
+                start_s=start * dt, end_s=min(end, run.record.ticks) * dt,
+                base_wrong=wrong_links(run.record, start, end, threshold_m=threshold_m),
+                variant_wrong=tuple(wrong_links(b.record, start, end, threshold_m=threshold_m) for b in copies),
+                base_links=len(_window_links(run.record, start, end)),
+                variant_links=tuple(len(_window_links(b.record, start, end)) for b in copies))
+        if finished:
+            return
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m services.launch.branches",
+        description="Copy an in-process run at intervals, continue each copy with other place recognizer "
+                    "parameters, and count the wrong links each measures (one JSON line a window, then totals).")
+    parser.add_argument("--world", default="orebro-office", help="built-in world name or world file")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the simulator")
+    parser.add_argument("--max-sim-time", type=float, default=9000.0, metavar="S", help="simulated time limit")
+    parser.add_argument("--every", type=float, default=400.0, metavar="S", help="simulated time between copies")
+    parser.add_argument("--window", type=float, default=300.0, metavar="S", help="simulated time a copy runs on")
+    parser.add_argument("--variant", action="append", required=True, metavar="JSON",
+                        help='recognizer parameters of a copy, e.g. \'{"match_sharpness": 12}\' (repeatable)')
+    args = parser.parse_args(argv)
+    try:
+        variants = [json.loads(v) for v in args.variant]
+        if not all(isinstance(v, dict) for v in variants):
+            raise ValueError("a variant is a JSON object of parameter names and values")
+        for v in variants:
+            recognizer_variant(PlaceRecognizerParams(), v)
+        if args.every <= 0 or args.window <= 0:
+            raise ValueError("--every and --window must be positive")
+        world = load_world(args.world)
+    except (ValueError, TypeError, OSError) as exc:  # json.JSONDecodeError is a ValueError
+        parser.error(str(exc))
+    params = InProcessParams(seed=args.seed, max_sim_time_s=args.max_sim_time)
+    base, wrong, links = 0, np.zeros(len(variants), dtype=int), np.zeros(len(variants), dtype=int)
+    fewer, more = np.zeros(len(variants), dtype=int), np.zeros(len(variants), dtype=int)
+    base_links = 0
+    for w in branches(world, params, variants, every_s=args.every, window_s=args.window):
+        print(json.dumps(dataclasses.asdict(w)), flush=True)
+        v = np.array(w.variant_wrong)
+        base += w.base_wrong
+        base_links += w.base_links
+        wrong += v
+        links += np.array(w.variant_links)
+        fewer += v < w.base_wrong
+        more += v > w.base_wrong
+    print(json.dumps({"world": world.name, "seed": args.seed, "base_wrong": base, "base_links": base_links,
+                      "variants": [{"variant": variants[k], "wrong": int(wrong[k]), "links": int(links[k]),
+                                    "windows_fewer": int(fewer[k]), "windows_more": int(more[k])}
+                                   for k in range(len(variants))]}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,75 @@
+"""Paired branches of an in-process run (services.launch.branches)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from services.launch import branches as br
+from services.launch.inprocess import InProcessParams, InProcessRun, LinkRecord, PlaceRecord, RunRecord
+from services.place_recognizer import PlaceRecognizerParams
+from sim.world import load_world
+
+
+def _link(tick, a, b, dx, dy):
+    return LinkRecord(tick=tick, from_id=a, to_id=b, d_m=math.hypot(dx, dy), theta_rad=math.atan2(dy, dx),
+                      steps=20, mean_step_m=0.05, traversals=1)
+
+
+def test_wrong_links_counts_first_measurements_in_the_window_against_the_truth():
+    rec = RunRecord(world="w", seed=0, dt_s=0.1)
+    rec.places = {i: PlaceRecord(i, 0, (float(i), 0.0), (float(i), 0.0)) for i in range(4)}
+    rec.links = [
+        _link(10, 0, 1, 1.02, 0.03),  # right
+        _link(12, 1, 2, 1.0, 0.8),  # 0.8 m off
+        _link(15, 1, 2, 1.0, 0.0),  # the same pair again: its first measurement counts
+        _link(30, 2, 3, 2.0, 0.0),  # 1 m off, after the window
+        _link(14, 3, 9, 1.0, 0.0),  # a place no longer mapped
+    ]
+    assert br.wrong_links(rec, 0, 20) == 1
+    assert br.wrong_links(rec, 0, 40) == 2
+    assert br.wrong_links(rec, 0, 40, threshold_m=0.9) == 1
+    assert br.wrong_links(rec, 13, 40) == 1  # from tick 13 the pair 1-2's first measurement is right
+
+
+def test_a_copy_with_the_same_parameters_continues_exactly_as_the_run():
+    """The copy owns its simulator, random generator and cores: stepping it does not move the run,
+    and the run stepped as far gives the same scans, places and links."""
+    run = InProcessRun(load_world("orebro-office"), InProcessParams(seed=2, max_sim_time_s=400.0))
+    while run.record.ticks < 1500:
+        run.tick()
+    same = br.continued(run, run.recognizer.params, 3000)
+    blind = br.continued(run, PlaceRecognizerParams(match_sharpness=0.5), 3000)
+    assert run.record.ticks == 1500
+    while run.record.ticks < 3000:
+        run.tick()
+    assert same.record.scans == run.record.scans and same.record.links == run.record.links
+    assert same.record.places == run.record.places and len(run.record.places) > 3
+    # a recognizer that hardly believes its matches localises otherwise from the same state
+    assert [s.place_id for s in blind.record.scans] != [s.place_id for s in run.record.scans]
+
+
+def test_branches_yield_every_window_and_an_empty_variant_is_the_run():
+    w = load_world("orebro-office")
+    out = list(br.branches(w, InProcessParams(seed=1, max_sim_time_s=500.0), [{}, {"match_sharpness": 0.5}],
+                           every_s=200.0, window_s=150.0))
+    # the second window is cut at the run's end
+    assert [t for o in out for t in (o.start_s, o.end_s)] == pytest.approx([200.0, 350.0, 400.0, 500.0])
+    for o in out:
+        assert o.variant_wrong[0] == o.base_wrong and o.variant_links[0] == o.base_links
+    assert sum(o.base_links for o in out) > 0
+
+
+def test_a_variant_names_recognizer_parameters_only():
+    with pytest.raises(ValueError, match="not a place recognizer parameter: sharpness"):
+        br.recognizer_variant(PlaceRecognizerParams(), {"sharpness": 3})
+
+
+@pytest.mark.parametrize("argv", [["--variant", "{not json"], ["--variant", "[1, 2]"],
+                                  ["--variant", '{"cell": 1}'], ["--variant", "{}", "--every", "0"]])
+def test_bad_arguments_exit_with_a_message(argv, capsys):
+    with pytest.raises(SystemExit) as exc:
+        br.main(argv)
+    assert exc.value.code == 2
+    assert "error:" in capsys.readouterr().err
