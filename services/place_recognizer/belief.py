@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -27,9 +27,13 @@ class Belief:
     none_prob : float
         Probability that the robot is at no known place (between places, or at a new one).
     none_xy : numpy.ndarray
-        Expected robot position under the "none" hypothesis, ``(2,)``.
+        Expected robot position under the "none" hypothesis, ``(2,)``: its most probable component's.
     none_var_m2 : float
         Its variance per axis.
+    none_parts : numpy.ndarray
+        "None" as a mixture: each component's share of ``none_prob``, position and variance per axis,
+        ``(K, 4)`` (columns share, x, y, variance); empty for the one component given by ``none_xy``
+        and ``none_var_m2``.
     """
 
     ids: np.ndarray
@@ -40,6 +44,13 @@ class Belief:
     none_prob: float
     none_xy: np.ndarray
     none_var_m2: float
+    none_parts: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+
+    def none_mixture(self) -> np.ndarray:
+        """The "none" components, ``(K, 4)``: share of ``none_prob``, x, y, variance per axis."""
+        if self.none_parts.shape[0]:
+            return self.none_parts
+        return np.array([[1.0, self.none_xy[0], self.none_xy[1], self.none_var_m2]])
 
     @classmethod
     def empty(cls, xy: tuple[float, float] = (0.0, 0.0)) -> Belief:
@@ -64,7 +75,7 @@ def _logsumexp(a: np.ndarray, axis: int) -> np.ndarray:
 def predict(belief: Belief, displacement_xy: np.ndarray, *, transition_std_m: float,
             transition_var_per_m_m2: float, place_radius_m: float, uniform_transition: float,
             unknown_offset_var_m2: float, relocalise_std_m: float = math.inf,
-            min_source_probability: float = 1e-12) -> Belief:
+            min_source_probability: float = 1e-12, none_components: int = 1, none_gate_sd: float = 3.0) -> Belief:
     """Move the belief by a dead-reckoned displacement (the prior of the next observation).
 
     Notes
@@ -87,15 +98,18 @@ def predict(belief: Belief, displacement_xy: np.ndarray, *, transition_std_m: fl
     arrives (mean and variance per axis). Only hypotheses at least ``min_source_probability``
     probable are moved as sources (the others' mass is dropped before normalising): most places of a
     large map hold next to nothing, and moving every one to every other costs ``O(P^2)``.
+    "None" is a mixture of up to ``none_components`` Gaussians (:func:`_reduce`), so that the mass a
+    look-alike neighbour hands to it does not move the robot's own.
     """
     d = np.asarray(displacement_xy, dtype=float)
     dist = float(np.hypot(*d))
     P = belief.ids.size
-    ps_all = np.append(belief.probs, belief.none_prob)
-    src = np.flatnonzero(ps_all >= min_source_probability)  # sources: rows of places, P for "none"
+    parts = belief.none_mixture()
+    ps_all = np.concatenate([belief.probs, belief.none_prob * parts[:, 0]])
+    src = np.flatnonzero(ps_all >= min_source_probability)  # sources: rows of places, then "none"'s parts
     ps = ps_all[src]
-    pos = np.vstack([belief.centres + belief.offsets + d, belief.none_xy + d])[src]  # (S, 2)
-    src_var = np.vstack([belief.offset_vars, np.full((1, 2), belief.none_var_m2)])[src]
+    pos = np.vstack([belief.centres + belief.offsets + d, parts[:, 1:3] + d])[src]  # (S, 2)
+    src_var = np.vstack([belief.offset_vars, np.repeat(parts[:, 3:4], 2, axis=1)])[src]
     src_var = src_var + transition_var_per_m_m2 * dist
     kvar = src_var.mean(axis=1) + transition_std_m**2  # (S,)
     diff = pos[:, None, :] - belief.centres[None, :, :]  # (S, P, 2): offset from each target centre
@@ -106,10 +120,11 @@ def predict(belief: Belief, displacement_xy: np.ndarray, *, transition_std_m: fl
     trans = np.exp(log_k - _logsumexp(log_k, axis=1)[:, None])
     informed = (1.0 - uniform_transition) * ps[:, None] * trans  # (S, P + 1)
     g = np.ones(P + 1)
+    total_mass = ps_all.sum()
     if math.isfinite(relocalise_std_m) and P:
         expected = (ps[:, None] * pos).sum(axis=0) / max(ps.sum(), 1e-300)
         g[:P] = np.exp(-((belief.centres - expected) ** 2).sum(axis=1) / (2.0 * relocalise_std_m**2))
-    uniform = uniform_transition * ps_all.sum() * g / g.sum()  # (P + 1,)
+    uniform = uniform_transition * total_mass * g / g.sum()  # (P + 1,)
     prior = informed.sum(axis=0) + uniform  # (P + 1,)
 
     w = informed[:, :P]  # (S, P)
@@ -123,14 +138,53 @@ def predict(belief: Belief, displacement_xy: np.ndarray, *, transition_std_m: fl
 
     wn = informed[:, P]
     if wn.sum() > 0.0:
-        none_xy = (wn[:, None] * pos).sum(axis=0) / wn.sum()
-        none_second = (wn[:, None] * (src_var + (pos - none_xy) ** 2)).sum(axis=0) / wn.sum()
-        none_var = float(none_second.mean())
+        new_parts = _reduce(wn, pos, src_var, none_components, none_gate_sd)
     else:
-        none_xy, none_var = belief.none_xy + d, belief.none_var_m2 + transition_var_per_m_m2 * dist
+        new_parts = parts + np.array([0.0, d[0], d[1], transition_var_per_m_m2 * dist])
     total = prior.sum()
     return replace(belief, probs=prior[:P] / total, offsets=mean, offset_vars=var,
-                   none_prob=float(prior[P] / total), none_xy=none_xy, none_var_m2=none_var)
+                   none_prob=float(prior[P] / total), none_xy=new_parts[0, 1:3].copy(),
+                   none_var_m2=float(new_parts[0, 3]), none_parts=new_parts if none_components > 1 else np.zeros((0, 4)))
+
+
+def _reduce(w: np.ndarray, xy: np.ndarray, var: np.ndarray, k: int, gate_sd: float) -> np.ndarray:
+    """Gaussians (weights ``w``, positions ``xy``, variances ``var`` per axis, ``(S, 2)``) merged to at most ``k``.
+
+    Greedy, most weight first: a component takes every remaining Gaussian within ``gate_sd`` standard
+    deviations (both variances) of its seed; once ``k`` are seeded, what is left joins the nearest.
+    Each component is the moment-matched mixture of its members. Rows: share of the total weight, x,
+    y, variance per axis (most weight first). With ``k = 1`` it is the moment match of them all.
+    """
+    total = w.sum()
+    if k <= 1:
+        mu = (w[:, None] * xy).sum(axis=0) / total
+        second = (w[:, None] * (var + (xy - mu) ** 2)).sum(axis=0) / total
+        return np.array([[1.0, mu[0], mu[1], float(second.mean())]])
+    order = np.argsort(-w, kind="stable")
+    order = order[w[order] > 0.0]
+    group = np.full(w.size, -1)
+    seeds: list[int] = []
+    for i in order:
+        if group[i] >= 0:
+            continue
+        if len(seeds) == k:
+            break
+        seeds.append(int(i))
+        left = order[group[order] < 0]
+        near = ((xy[left] - xy[i]) ** 2).sum(axis=1) <= gate_sd**2 * (var[left] + var[i]).mean(axis=1)
+        group[left[near]] = len(seeds) - 1
+    rest = order[group[order] < 0]
+    if rest.size:
+        sx = xy[seeds]
+        group[rest] = np.argmin(((xy[rest][:, None, :] - sx[None]) ** 2).sum(axis=-1), axis=1)
+    out = np.zeros((len(seeds), 4))
+    for c in range(len(seeds)):
+        m = group == c
+        wc = w[m]
+        mu = (wc[:, None] * xy[m]).sum(axis=0) / wc.sum()
+        second = (wc[:, None] * (var[m] + (xy[m] - mu) ** 2)).sum(axis=0) / wc.sum()
+        out[c] = (wc.sum() / total, mu[0], mu[1], float(second.mean()))
+    return out[np.argsort(-out[:, 0], kind="stable")]
 
 
 def spread(belief: Belief, fraction: float, *, std_m: float, unknown_offset_var_m2: float) -> Belief:

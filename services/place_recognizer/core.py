@@ -54,6 +54,9 @@ class PlaceRecognizerParams:
     # same walls from the same spot) ...
     repeat_scan_weight: float = 0.2  # ... counts as this fraction of an observation (tempered likelihood):
     # taken as independent, 15 s of a stalled robot beside a look-alike moved the belief 7 m
+    none_components: int = 1  # "no known place" is a mixture of at most this many Gaussians (1: one, the
+    # moment match of all its mass; 3 measured no better, docs/places.md, "A "none" of three tracks") ...
+    none_gate_sd: float = 3.0  # ... each taking the mass that arrives within this many standard deviations
     new_place_match: float = 0.7  # virtual match score of the "no known place" hypothesis
     confirmed_probability: float = 0.95  # belief in a place at the moment it is confirmed
     settle_observations: int = 5  # observations at a revisited place before its link is measured (or on
@@ -688,7 +691,7 @@ class PlaceRecognizer:
             self.belief, move, transition_std_m=p.transition_std_m,
             transition_var_per_m_m2=p.transition_var_per_m_m2, place_radius_m=p.place_radius_m,
             uniform_transition=p.uniform_transition, unknown_offset_var_m2=p.unknown_offset_var_m2,
-            relocalise_std_m=p.relocalise_std_m,
+            relocalise_std_m=p.relocalise_std_m, none_components=p.none_components, none_gate_sd=p.none_gate_sd,
         )
 
     def _depart_from_restored(self, dr: DeadReckonedPose) -> None:

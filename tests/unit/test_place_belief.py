@@ -155,3 +155,61 @@ def test_negligible_hypotheses_are_not_moved_as_sources():
     big = every.probs > 1e-6
     np.testing.assert_allclose(some.offsets[big], every.offsets[big], atol=1e-9)
     np.testing.assert_allclose(some.none_xy, every.none_xy, atol=1e-9)
+
+
+def _corridor(probs):
+    """Places 0-5 on a line 1 m apart, the robot at their centres with the given masses."""
+    n = 6
+    return B.Belief(ids=np.arange(n), centres=np.c_[np.arange(n, dtype=float), np.zeros(n)],
+                    probs=np.asarray(probs, float), offsets=np.zeros((n, 2)), offset_vars=np.full((n, 2), 0.01),
+                    none_prob=0.0, none_xy=np.zeros(2), none_var_m2=0.0)
+
+
+def test_none_as_a_mixture_keeps_each_track():
+    """Leaving a corridor of look-alike places, the robot is at place 2 (0.8) or at its neighbours.
+    Merged into one Gaussian, "none" sits between them, wider than any, and brings the robot back
+    nearer place 3; as a mixture each track keeps its own position and comes back to its place."""
+    b = _corridor([0.0, 0.05, 0.8, 0.15, 0.0, 0.0])
+    north, south = np.array([0.0, 1.0]), np.array([0.0, -1.0])
+    merged = B.predict(b, north, **MOTION)
+    mixed = B.predict(b, north, **MOTION, none_components=3)
+    for out in (merged, mixed):
+        assert out.none_prob > 0.99
+        assert out.probs.sum() + out.none_prob == pytest.approx(1.0)
+    # the kernel variance 0.01 + 0.02 + 0.1^2 = 0.04 a source: 1 m is 3.5 sd of two, beyond the gate
+    parts = mixed.none_mixture()
+    np.testing.assert_allclose(parts[:, 0], [0.8, 0.15, 0.05], atol=1e-3)
+    np.testing.assert_allclose(parts[:, 1:3], [[2.0, 1.0], [3.0, 1.0], [1.0, 1.0]], atol=1e-9)
+    np.testing.assert_allclose(parts[:, 3], 0.03)
+    np.testing.assert_allclose(mixed.none_xy, [2.0, 1.0], atol=1e-9)
+    assert merged.none_mixture().shape == (1, 4)
+    assert merged.none_xy[0] == pytest.approx(2.0 + 0.15 - 0.05, abs=1e-3)
+    back_merged = B.predict(merged, south, **MOTION)
+    back_mixed = B.predict(mixed, south, **MOTION, none_components=3)
+    # back where it left: as a mixture, places 1-3 hold 0.05 : 0.8 : 0.15 again, each with its own
+    # track (offset about 0); merged, every hypothesis has the robot at x = 2.1, place 2 holds 0.64
+    # and place 3 0.049 with an offset of -0.9 m
+    assert back_mixed.probs[2] > 0.7 and back_merged.probs[2] < 0.65
+    assert back_mixed.probs[2] / back_mixed.probs[3] == pytest.approx(0.8 / 0.15, rel=1e-2)
+    assert back_mixed.probs[1] / back_mixed.probs[3] == pytest.approx(0.05 / 0.15, rel=1e-2)
+    np.testing.assert_allclose(back_mixed.offsets[1:4, 0], 0.0, atol=0.01)
+    np.testing.assert_allclose(back_merged.offsets[1:4, 0], [1.1, 0.1, -0.9], atol=0.01)
+
+
+def test_a_mixture_of_one_is_the_moment_match_bit_for_bit():
+    b = _corridor([0.1, 0.2, 0.3, 0.2, 0.1, 0.1])
+    one = B.predict(b, np.array([0.3, 2.0]), **MOTION)
+    again = B.predict(b, np.array([0.3, 2.0]), **MOTION, none_components=1, none_gate_sd=0.1)
+    assert np.array_equal(one.none_xy, again.none_xy) and one.none_var_m2 == again.none_var_m2
+    assert np.array_equal(one.probs, again.probs)
+
+
+def test_reduce_merges_what_is_left_into_the_nearest_component():
+    w = np.array([0.5, 0.1, 0.3, 0.1])
+    xy = np.array([[0.0, 0.0], [0.1, 0.0], [3.0, 0.0], [3.2, 0.0]])
+    var = np.full((4, 2), 0.01)
+    # gate 0.5 sd: every source is its own seed until two are taken; the rest join the nearest
+    out = B._reduce(w, xy, var, 2, 0.5)
+    np.testing.assert_allclose(out[:, 0], [0.6, 0.4])
+    np.testing.assert_allclose(out[:, 1], [0.1 / 6, 3.05])
+    np.testing.assert_allclose(out[0, 3], 0.01 + (0.5 * (0.1 / 6) ** 2 + 0.1 * (0.1 - 0.1 / 6) ** 2) / 0.6 / 2)
