@@ -46,7 +46,22 @@ def recognizer_variant(params: PlaceRecognizerParams, overrides: Mapping[str, ob
     unknown = sorted(set(overrides) - known)
     if unknown:
         raise ValueError(f"not a place recognizer parameter: {', '.join(unknown)}")
-    return dataclasses.replace(params, **overrides)
+    values = {}
+    for name, value in overrides.items():
+        now = getattr(params, name)
+        if dataclasses.is_dataclass(now) and isinstance(value, Mapping):  # e.g. {"deviation": {"enabled": false}}
+            try:
+                values[name] = dataclasses.replace(now, **value)
+            except TypeError as exc:
+                raise ValueError(f"{name}: {exc}") from None
+            continue
+        numeric = isinstance(now, (int, float)) and not isinstance(now, bool)
+        fits = (isinstance(value, (int, float)) and not isinstance(value, bool)) if numeric else (
+            isinstance(value, (list, tuple)) if isinstance(now, tuple) else isinstance(value, type(now)))
+        if not fits:
+            raise ValueError(f"{name} must be like {now!r}, not {value!r}")
+        values[name] = tuple(value) if isinstance(now, tuple) else value
+    return dataclasses.replace(params, **values)
 
 
 def _window_links(record: RunRecord, since_tick: int, until_tick: int) -> dict[frozenset[int], object]:

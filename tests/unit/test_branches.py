@@ -62,12 +62,21 @@ def test_branches_yield_every_window_and_an_empty_variant_is_the_run():
 
 
 def test_a_variant_names_recognizer_parameters_only():
+    base = PlaceRecognizerParams()
     with pytest.raises(ValueError, match="not a place recognizer parameter: sharpness"):
-        br.recognizer_variant(PlaceRecognizerParams(), {"sharpness": 3})
+        br.recognizer_variant(base, {"sharpness": 3})
+    with pytest.raises(ValueError, match="none_components must be like 1, not 'x'"):
+        br.recognizer_variant(base, {"none_components": "x"})
+    with pytest.raises(ValueError, match="deviation: "):
+        br.recognizer_variant(base, {"deviation": {"no_such": 1}})
+    v = br.recognizer_variant(base, {"match_sharpness": 12, "match_weights": [1, 0.1, 0.1],
+                                     "deviation": {"enabled": False}})
+    assert v.match_sharpness == 12 and v.match_weights == (1, 0.1, 0.1) and not v.deviation.enabled
+    assert v.cell_m == base.cell_m and v.deviation.prior_std_rad == base.deviation.prior_std_rad
 
 
 @pytest.mark.parametrize("argv", [["--variant", "{not json"], ["--variant", "[1, 2]"],
-                                  ["--variant", '{"cell": 1}'], ["--variant", "{}", "--every", "0"]])
+                                  ["--variant", '{"cell": 1}'], ["--variant", '{"cell_m": true}'], ["--variant", "{}", "--every", "0"]])
 def test_bad_arguments_exit_with_a_message(argv, capsys):
     with pytest.raises(SystemExit) as exc:
         br.main(argv)
