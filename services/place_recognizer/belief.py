@@ -120,11 +120,10 @@ def predict(belief: Belief, displacement_xy: np.ndarray, *, transition_std_m: fl
     trans = np.exp(log_k - _logsumexp(log_k, axis=1)[:, None])
     informed = (1.0 - uniform_transition) * ps[:, None] * trans  # (S, P + 1)
     g = np.ones(P + 1)
-    total_mass = ps_all.sum()
     if math.isfinite(relocalise_std_m) and P:
         expected = (ps[:, None] * pos).sum(axis=0) / max(ps.sum(), 1e-300)
         g[:P] = np.exp(-((belief.centres - expected) ** 2).sum(axis=1) / (2.0 * relocalise_std_m**2))
-    uniform = uniform_transition * total_mass * g / g.sum()  # (P + 1,)
+    uniform = uniform_transition * ps_all.sum() * g / g.sum()  # (P + 1,)
     prior = informed.sum(axis=0) + uniform  # (P + 1,)
 
     w = informed[:, :P]  # (S, P)
