@@ -47,15 +47,16 @@ class PlaceRecognizerParams:
     # unknown counts in Eq. 19 (equal in the paper): the many empty and unknown cells depend on where the
     # sonar looked from more than on the place, and would drown the walls
     match_axes: str = "min"  # a place's score from its x and y scores: "min" (both must fit) or "mean"
-    match_sharpness: float = 25.0  # beta: likelihood exp(beta (M - 1)) of a match score M
+    match_sharpness: float = 12.0  # beta: likelihood exp(beta (M - 1)) of a match score M (fitted 25 to one
+    # observation; a scan is in about three consecutive ones, docs/places.md, "A "none" of three tracks")
     repeat_scan_m: float = 0.15  # a scan taken within this of a scan counted in full ...
     repeat_scan_memory_s: float = 20.0  # ... in the last this many simulated seconds, whatever its heading
     # (a robot standing still, turning on the spot or rocking back and forth: its sonar ring sees the
     # same walls from the same spot) ...
     repeat_scan_weight: float = 0.2  # ... counts as this fraction of an observation (tempered likelihood):
     # taken as independent, 15 s of a stalled robot beside a look-alike moved the belief 7 m
-    none_components: int = 1  # "no known place" is a mixture of at most this many Gaussians (1: one, the
-    # moment match of all its mass; 3 measured no better, docs/places.md, "A "none" of three tracks") ...
+    none_components: int = 3  # "no known place" is a mixture of at most this many Gaussians (1: one, the
+    # moment match of all its mass, which moves the robot's own track with the look-alikes') ...
     none_gate_sd: float = 3.0  # ... each taking the mass that arrives within this many standard deviations
     new_place_match: float = 0.7  # virtual match score of the "no known place" hypothesis
     confirmed_probability: float = 0.95  # belief in a place at the moment it is confirmed

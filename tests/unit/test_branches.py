@@ -65,7 +65,7 @@ def test_a_variant_names_recognizer_parameters_only():
     base = PlaceRecognizerParams()
     with pytest.raises(ValueError, match="not a place recognizer parameter: sharpness"):
         br.recognizer_variant(base, {"sharpness": 3})
-    with pytest.raises(ValueError, match="none_components must be like 1, not 'x'"):
+    with pytest.raises(ValueError, match="none_components must be like 3, not 'x'"):
         br.recognizer_variant(base, {"none_components": "x"})
     with pytest.raises(ValueError, match="deviation: "):
         br.recognizer_variant(base, {"deviation": {"no_such": 1}})

@@ -366,9 +366,14 @@ def _scans_until_taken(weight: float, motion: str) -> int:
     """Place 0 is confirmed at (1.5, 1.5); dead reckoning then drives 5 m east, and the scans come
     back from place 0 while it says the robot ``motion``: "drives" on east (0.2 m a scan, as the
     simulator's distance trigger has them), stands "still", is "turning" on the spot or "rocking" 0.3 m
-    back and forth. Returns the scans until the belief holds place 0 above 0.5 (100 if never)."""
+    back and forth. Returns the scans until the belief holds place 0 above 0.5 (100 if never).
+    "None" is one Gaussian here and a match as sharp as one observation alone (``none_components`` 1,
+    ``match_sharpness`` 25): with three tracks the robot's own, dead reckoning driving on east, keeps
+    it from place 0 for good (400 scans and more), so that only a robot not moving on is taken back,
+    and what is measured here is how much its scans weigh."""
     rec = PlaceRecognizer(PlaceRecognizerParams(relocalise_std_m=math.inf, uniform_transition=1e-3,
-                                                arrival_gate_m=math.inf, repeat_scan_weight=weight))
+                                                arrival_gate_m=math.inf, repeat_scan_weight=weight,
+                                                none_components=1, match_sharpness=25.0))
     d = _confirm_and_drive_east(rec)
     for n in range(1, 101):
         x = {"drives": 6.5 + 0.2 * n, "rocking": 6.5 + 0.3 * (n % 2)}.get(motion, 6.5)
