@@ -27,9 +27,10 @@ class BranchWindow:
     start_s, end_s : float
         The window's simulated time.
     base_wrong, variant_wrong : int, tuple of int
-        Links first measured wrong in the window (:func:`wrong_links`): by the run, by each variant.
+        Pairs of places whose link was measured wrong in the window (:func:`wrong_links`): by the run,
+        by each variant.
     base_links, variant_links : int, tuple of int
-        Links measured in the window (each pair of places once).
+        Pairs of places whose link was measured in the window.
     """
 
     start_s: float
@@ -64,27 +65,32 @@ def recognizer_variant(params: PlaceRecognizerParams, overrides: Mapping[str, ob
     return dataclasses.replace(params, **values)
 
 
-def _window_links(record: RunRecord, since_tick: int, until_tick: int) -> dict[frozenset[int], object]:
-    """The first measurement of every pair of places linked in ``[since_tick, until_tick)``."""
-    out: dict[frozenset[int], object] = {}
+def _window_links(record: RunRecord, since_tick: int, until_tick: int) -> dict[frozenset[int], list]:
+    """Every measurement in ``[since_tick, until_tick)``, by pair of places."""
+    out: dict[frozenset[int], list] = {}
     for lk in record.links:
         if since_tick <= lk.tick < until_tick:
-            out.setdefault(frozenset((lk.from_id, lk.to_id)), lk)
+            out.setdefault(frozenset((lk.from_id, lk.to_id)), []).append(lk)
     return out
 
 
 def wrong_links(record: RunRecord, since_tick: int, until_tick: int, *, threshold_m: float = 0.5) -> int:
-    """Links first measured in ``[since_tick, until_tick)`` between places still mapped whose
-    displacement is further than ``threshold_m`` from the places' true one (a link measured from or
-    to a place the robot was not at: a place is about 1 m from its neighbours)."""
+    """Pairs of places still mapped whose link was measured in ``[since_tick, until_tick)`` further
+    than ``threshold_m`` from the places' true displacement at least once (a link measured from or to
+    a place the robot was not at: a place is about 1 m from its neighbours)."""
     places = record.places
     n = 0
-    for lk in _window_links(record, since_tick, until_tick).values():
-        if lk.from_id not in places or lk.to_id not in places:
+    for pair in _window_links(record, since_tick, until_tick).values():
+        a, b = pair[0].from_id, pair[0].to_id
+        if a not in places or b not in places:
             continue
-        measured = np.array((lk.d_m * math.cos(lk.theta_rad), lk.d_m * math.sin(lk.theta_rad)))
-        true = np.subtract(places[lk.to_id].true_xy, places[lk.from_id].true_xy)
-        n += bool(np.hypot(*(measured - true)) > threshold_m)
+        true = np.subtract(places[b].true_xy, places[a].true_xy)
+        for lk in pair:
+            sign = 1.0 if lk.from_id == a else -1.0
+            measured = sign * np.array((lk.d_m * math.cos(lk.theta_rad), lk.d_m * math.sin(lk.theta_rad)))
+            if np.hypot(*(measured - true)) > threshold_m:
+                n += 1
+                break
     return n
 
 

@@ -17,20 +17,24 @@ def _link(tick, a, b, dx, dy):
                       steps=20, mean_step_m=0.05, traversals=1)
 
 
-def test_wrong_links_counts_first_measurements_in_the_window_against_the_truth():
+def test_wrong_links_counts_each_pair_measured_wrong_in_the_window_once():
     rec = RunRecord(world="w", seed=0, dt_s=0.1)
     rec.places = {i: PlaceRecord(i, 0, (float(i), 0.0), (float(i), 0.0)) for i in range(4)}
     rec.links = [
         _link(10, 0, 1, 1.02, 0.03),  # right
         _link(12, 1, 2, 1.0, 0.8),  # 0.8 m off
-        _link(15, 1, 2, 1.0, 0.0),  # the same pair again: its first measurement counts
-        _link(30, 2, 3, 2.0, 0.0),  # 1 m off, after the window
+        _link(15, 2, 1, -1.0, -0.7),  # the same pair, backwards, 0.7 m off: counted once
+        _link(17, 1, 0, -1.0, 0.0),  # right, backwards
+        _link(18, 0, 1, 1.0, 0.0),  # ... and forwards
+        _link(30, 2, 3, 2.0, 0.0),  # 1 m off, after the first window
+        _link(35, 1, 2, 1.0, 0.0),  # pair 1-2 measured right later
         _link(14, 3, 9, 1.0, 0.0),  # a place no longer mapped
     ]
     assert br.wrong_links(rec, 0, 20) == 1
     assert br.wrong_links(rec, 0, 40) == 2
     assert br.wrong_links(rec, 0, 40, threshold_m=0.9) == 1
-    assert br.wrong_links(rec, 13, 40) == 1  # from tick 13 the pair 1-2's first measurement is right
+    assert br.wrong_links(rec, 16, 40) == 1  # from tick 16 pair 1-2 is measured right only
+    assert br.wrong_links(rec, 0, 14) == 1
 
 
 def test_a_copy_with_the_same_parameters_continues_exactly_as_the_run():
