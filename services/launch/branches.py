@@ -127,7 +127,7 @@ def branches(world: World, params: InProcessParams, variants: Sequence[Mapping[s
         finished = run.done
         if not finished:
             run.tick()
-            if run.record.ticks * dt >= next_s - 1e-9:
+            if run.record.ticks * dt >= next_s - 1e-9 and not run.done:  # no copy at the run's end
                 next_s += every_s
                 start = run.record.ticks
                 copies = [continued(run, rp, start + width) for rp in runs]
@@ -154,21 +154,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-sim-time", type=float, default=9000.0, metavar="S", help="simulated time limit")
     parser.add_argument("--every", type=float, default=400.0, metavar="S", help="simulated time between copies")
     parser.add_argument("--window", type=float, default=300.0, metavar="S", help="simulated time a copy runs on")
+    parser.add_argument("--base", default="{}", metavar="JSON",
+                        help="recognizer parameters of the run itself (default: the defaults)")
     parser.add_argument("--variant", action="append", required=True, metavar="JSON",
                         help='recognizer parameters of a copy, e.g. \'{"match_sharpness": 12}\' (repeatable)')
     args = parser.parse_args(argv)
     try:
+        base_ov = json.loads(args.base)
         variants = [json.loads(v) for v in args.variant]
-        if not all(isinstance(v, dict) for v in variants):
-            raise ValueError("a variant is a JSON object of parameter names and values")
+        if not all(isinstance(v, dict) for v in [base_ov, *variants]):
+            raise ValueError("the base and a variant are JSON objects of parameter names and values")
+        recognizer = recognizer_variant(PlaceRecognizerParams(), base_ov)
         for v in variants:
-            recognizer_variant(PlaceRecognizerParams(), v)
+            recognizer_variant(recognizer, v)
         if args.every <= 0 or args.window <= 0:
             raise ValueError("--every and --window must be positive")
         world = load_world(args.world)
     except (ValueError, TypeError, OSError) as exc:  # json.JSONDecodeError is a ValueError
         parser.error(str(exc))
-    params = InProcessParams(seed=args.seed, max_sim_time_s=args.max_sim_time)
+    params = InProcessParams(seed=args.seed, max_sim_time_s=args.max_sim_time, recognizer=recognizer)
     base, wrong, links = 0, np.zeros(len(variants), dtype=int), np.zeros(len(variants), dtype=int)
     fewer, more = np.zeros(len(variants), dtype=int), np.zeros(len(variants), dtype=int)
     base_links = 0
@@ -181,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
         links += np.array(w.variant_links)
         fewer += v < w.base_wrong
         more += v > w.base_wrong
-    print(json.dumps({"world": world.name, "seed": args.seed, "base_wrong": base, "base_links": base_links,
+    print(json.dumps({"world": world.name, "seed": args.seed, "base": base_ov, "base_wrong": base, "base_links": base_links,
                       "variants": [{"variant": variants[k], "wrong": int(wrong[k]), "links": int(links[k]),
                                     "windows_fewer": int(fewer[k]), "windows_more": int(more[k])}
                                    for k in range(len(variants))]}))

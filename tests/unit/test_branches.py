@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -80,9 +81,22 @@ def test_a_variant_names_recognizer_parameters_only():
 
 
 @pytest.mark.parametrize("argv", [["--variant", "{not json"], ["--variant", "[1, 2]"],
-                                  ["--variant", '{"cell": 1}'], ["--variant", '{"cell_m": true}'], ["--variant", "{}", "--every", "0"]])
+                                  ["--variant", '{"cell": 1}'], ["--variant", '{"cell_m": true}'],
+                                  ["--base", '{"cell": 1}', "--variant", "{}"], ["--base", "[]", "--variant", "{}"], ["--variant", "{}", "--every", "0"]])
 def test_bad_arguments_exit_with_a_message(argv, capsys):
     with pytest.raises(SystemExit) as exc:
         br.main(argv)
     assert exc.value.code == 2
     assert "error:" in capsys.readouterr().err
+
+
+def test_the_command_prints_each_window_and_the_totals_against_its_base(capsys):
+    assert br.main(["--max-sim-time", "300", "--every", "150", "--window", "100", "--base",
+                    '{"none_components": 1}', "--variant", '{"none_components": 1}', "--variant", "{}"]) == 0
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    windows, total = lines[:-1], lines[-1]
+    assert [w["start_s"] for w in windows] == [150.0]  # the copy from 300 s has no time left and is not made
+    assert total["base"] == {"none_components": 1}
+    # the first variant is the base itself: the same links, window by window
+    assert all(w["variant_links"][0] == w["base_links"] for w in windows)
+    assert total["variants"][0]["links"] == total["base_links"] > 0
