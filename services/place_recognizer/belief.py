@@ -155,29 +155,29 @@ def _reduce(w: np.ndarray, xy: np.ndarray, var: np.ndarray, k: int, gate_sd: flo
     y, variance per axis (most weight first). With ``k = 1`` it is the moment match of them all.
     """
     total = w.sum()
-    if k <= 1:
-        mu = (w[:, None] * xy).sum(axis=0) / total
-        second = (w[:, None] * (var + (xy - mu) ** 2)).sum(axis=0) / total
-        return np.array([[1.0, mu[0], mu[1], float(second.mean())]])
-    order = np.argsort(-w, kind="stable")
-    order = order[w[order] > 0.0]
     group = np.full(w.size, -1)
-    seeds: list[int] = []
-    for i in order:
-        if group[i] >= 0:
-            continue
-        if len(seeds) == k:
-            break
-        seeds.append(int(i))
-        left = order[group[order] < 0]
-        near = ((xy[left] - xy[i]) ** 2).sum(axis=1) <= gate_sd**2 * (var[left] + var[i]).mean(axis=1)
-        group[left[near]] = len(seeds) - 1
-    rest = order[group[order] < 0]
-    if rest.size:
-        sx = xy[seeds]
-        group[rest] = np.argmin(((xy[rest][:, None, :] - sx[None]) ** 2).sum(axis=-1), axis=1)
-    out = np.zeros((len(seeds), 4))
-    for c in range(len(seeds)):
+    if k <= 1:
+        group[:] = 0  # every source, the ones without weight too: the sums are the plain moment match's
+        count = 1
+    else:
+        order = np.argsort(-w, kind="stable")
+        order = order[w[order] > 0.0]
+        seeds: list[int] = []
+        for i in order:
+            if group[i] >= 0:
+                continue
+            if len(seeds) == k:
+                break
+            seeds.append(int(i))
+            left = order[group[order] < 0]
+            near = ((xy[left] - xy[i]) ** 2).sum(axis=1) <= gate_sd**2 * (var[left] + var[i]).mean(axis=1)
+            group[left[near]] = len(seeds) - 1
+        rest = order[group[order] < 0]
+        if rest.size:
+            group[rest] = np.argmin(((xy[rest][:, None, :] - xy[seeds][None]) ** 2).sum(axis=-1), axis=1)
+        count = len(seeds)
+    out = np.zeros((count, 4))
+    for c in range(count):
         m = group == c
         wc = w[m]
         mu = (wc[:, None] * xy[m]).sum(axis=0) / wc.sum()
