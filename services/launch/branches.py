@@ -11,6 +11,7 @@ import sys
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
+import msgspec
 import numpy as np
 
 from services.launch.inprocess import InProcessParams, InProcessRun, RunRecord
@@ -42,27 +43,28 @@ class BranchWindow:
 
 
 def recognizer_variant(params: PlaceRecognizerParams, overrides: Mapping[str, object]) -> PlaceRecognizerParams:
-    """``params`` with ``overrides``; ``ValueError`` naming a field the recognizer does not have."""
-    known = {f.name for f in dataclasses.fields(PlaceRecognizerParams)}
-    unknown = sorted(set(overrides) - known)
+    """``params`` with ``overrides`` (a nested object for the deviation's parameters), converted and
+    checked by msgspec; ``ValueError`` naming a field the recognizer does not have or a wrong value."""
+    fields = msgspec.to_builtins(params)
+    _merge(fields, overrides, params, "")
+    try:
+        return msgspec.convert(fields, PlaceRecognizerParams)
+    except msgspec.ValidationError as exc:
+        raise ValueError(f"place recognizer parameters: {exc}") from None
+
+
+def _merge(into: dict, overrides: Mapping[str, object], like: object, path: str) -> None:
+    """``overrides`` into ``into`` (the builtins of ``like``, a dataclass), by name; msgspec ignores
+    names a dataclass does not have, so they are refused here."""
+    unknown = sorted(set(overrides) - {f.name for f in dataclasses.fields(like)})
     if unknown:
-        raise ValueError(f"not a place recognizer parameter: {', '.join(unknown)}")
-    values = {}
+        raise ValueError(f"not a place recognizer parameter: {', '.join(path + n for n in unknown)}")
     for name, value in overrides.items():
-        now = getattr(params, name)
+        now = getattr(like, name)
         if dataclasses.is_dataclass(now) and isinstance(value, Mapping):  # e.g. {"deviation": {"enabled": false}}
-            try:
-                values[name] = dataclasses.replace(now, **value)
-            except TypeError as exc:
-                raise ValueError(f"{name}: {exc}") from None
-            continue
-        numeric = isinstance(now, (int, float)) and not isinstance(now, bool)
-        fits = (isinstance(value, (int, float)) and not isinstance(value, bool)) if numeric else (
-            isinstance(value, (list, tuple)) if isinstance(now, tuple) else isinstance(value, type(now)))
-        if not fits:
-            raise ValueError(f"{name} must be like {now!r}, not {value!r}")
-        values[name] = tuple(value) if isinstance(now, tuple) else value
-    return dataclasses.replace(params, **values)
+            _merge(into[name], value, now, f"{path}{name}.")
+        else:
+            into[name] = value
 
 
 def _window_links(record: RunRecord, since_tick: int, until_tick: int) -> dict[frozenset[int], list]:
