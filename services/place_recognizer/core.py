@@ -75,6 +75,10 @@ class PlaceRecognizerParams:
     relocalise_scans: int = 25  # ... this many scans, or until the belief settles at another place (relocalise)
     match_window_sd: float = 3.0  # a place is matched at shifts within this many standard deviations of
     # its predicted offset (0: at every shift)
+    match_offset_max_sd_m: float = math.inf  # a match whose offset is less certain than this (sigma*,
+    # Eqs. 20-21) leaves the offsets as predicted: along a plain corridor its best shift is where its scans'
+    # coverage lines up with the signature's. Off by default: those pulls shorten the links about as much
+    # as the wheels lengthen them (docs/places.md, "Links that repeat the map")
     deviation: DeviationParams = field(default_factory=DeviationParams)  # the compass's deviation per place
 
     def __post_init__(self) -> None:
@@ -84,6 +88,8 @@ class PlaceRecognizerParams:
             raise ValueError(f"match_weights must be three weights >= 0, not all 0: {self.match_weights!r}")
         if not 0.0 < self.repeat_scan_weight <= 1.0:
             raise ValueError(f"repeat_scan_weight must be in (0, 1], got {self.repeat_scan_weight!r}")
+        if not self.match_offset_max_sd_m > 0.0:
+            raise ValueError(f"match_offset_max_sd_m must be > 0 (inf: off), got {self.match_offset_max_sd_m!r}")
 
 
 @dataclass(frozen=True)
@@ -358,6 +364,7 @@ class PlaceRecognizer:
             self.belief = _belief.Belief.empty(xy) if self.belief.ids.size == 0 else self.belief
         self._move_belief_to(xy)
         scores, offsets, variances = self.match(xy)
+        variances = np.where(variances > p.match_offset_max_sd_m**2, np.inf, variances)
         self.belief = _belief.correct(self.belief, scores, offsets, variances,
                                       match_sharpness=p.match_sharpness * self._scan_weight(dr),
                                       new_place_match=p.new_place_match)

@@ -324,6 +324,8 @@ def test_bad_match_parameters_are_refused():
         PlaceRecognizerParams(match_axes="max")
     with pytest.raises(ValueError, match="match_weights"):
         PlaceRecognizerParams(match_weights=(0.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match="match_offset_max_sd_m"):
+        PlaceRecognizerParams(match_offset_max_sd_m=0.0)
     assert PlaceRecognizerParams(match_axes="mean", match_weights=(1.0, 1.0, 1.0)).match_axes == "mean"
 
 
@@ -434,3 +436,37 @@ def test_the_motion_through_a_disturbance_is_turned_into_the_maps_frame(enabled)
     moved = rec.belief.offsets[rec.belief.index(0)] - before
     turn = math.radians(-10.0) if enabled else 0.0
     np.testing.assert_allclose(moved, [0.5 * math.cos(turn), 0.5 * math.sin(turn)], atol=1e-3)  # 0.087 m apart
+
+
+def _offset_errors_back_along_a_plain_corridor(max_sd_m: float) -> np.ndarray:
+    """A plain corridor 20 m x 2 m: places every metre driving east (perfect dead reckoning, a scan
+    every 0.2 m), then back west from 18 m to 9 m. Returns the filtered offset's error along the
+    corridor at every scan localised at a place on the way back."""
+    walls = box(0, 0, 20, 2.0)
+    d = _Drive(PlaceRecognizer(PlaceRecognizerParams(match_offset_max_sd_m=max_sd_m)))
+    places: dict[int, float] = {}
+    for k in range(81):
+        x = 2.0 + 0.2 * k
+        dr = d.dr(x, 1.0)
+        out = d.rec.step(dr, scan_at(x, 1.0, 0.0, walls)[0])
+        if out.localization.place_id == NO_PLACE and all(abs(x - px) > 0.95 for px in places.values()):
+            places[len(places)] = x
+            d.rec.add_place(len(places) - 1, x, 1.0, dr)
+    errors = []
+    for k in range(1, 46):
+        x = 18.0 - 0.2 * k
+        loc = d.rec.step(d.dr(x, 1.0), scan_at(x, 1.0, 0.0, walls)[0]).localization
+        if loc.place_id != NO_PLACE:
+            errors.append(loc.offset_x_m - (x - places[loc.place_id]))
+    return np.array(errors)
+
+
+def test_a_flat_match_leaves_the_offset_as_dead_reckoning_predicts_it():
+    """Along a plain corridor the match has nothing to lock onto: its best shift is where its scans'
+    coverage lines up with the signature's, and each observation pulls the offset that way. Matches
+    less certain than ``match_offset_max_sd_m`` leave the offset to dead reckoning (exact here)."""
+    pulled = _offset_errors_back_along_a_plain_corridor(math.inf)
+    kept = _offset_errors_back_along_a_plain_corridor(0.4)
+    assert len(pulled) > 30 and len(kept) > 30  # localised at a place on most scans either way
+    assert np.abs(kept).max() < 0.02
+    assert np.abs(pulled).max() > 0.05
